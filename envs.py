@@ -1,0 +1,248 @@
+"""Sec. 5 and App. D: Walker and Stickman, the four tasks, two viewpoints, score normalisation (Eq. 8).
+
+Both bodies are planar MuJoCo models driven like dm_control's walker: control step 0.025 s
+(10 physics steps of 0.0025 s), action repeat 2, so an episode is 1000 control steps = 500 agent
+steps and the agent's reward is the sum over the repeat (as in Dreamer and GenRL).
+
+* Walker is dm_control's walker XML unchanged, plus our diagonal camera (a camera does not change
+  the dynamics, so stand/walk/run rewards equal `dm_control.suite.walker` step for step).
+* Stickman follows the public GenRL model (../shared/FACTS.md): walker with a shorter torso, arms
+  (shoulder, elbow) and a head; 10 motors. Written here from those facts.
+
+One reward definition per task, shared by both bodies (the paper's R^S = R^A). The only per-body
+constant is the standing height of the torso (walker 1.2 as in dm_control, stickman 1.15 as in
+GenRL), because the torsos differ in length:
+  stand = (3 * standing + upright) / 4,  standing = tolerance(torso_z, [H, inf), margin H/2),
+                                          upright  = (1 + torso_zz) / 2
+  walk, run = stand * (5 * move + 1) / 6, move = tolerance(com_vx, [v, inf), margin v/2, 0.5, linear)
+  jump (ours, no public definition exists) = stand * (5 * lift + 1) / 6,
+        lift = clip((torso_z - H) / JUMP_RISE, 0, 1), JUMP_RISE = 0.4 m.
+Standing still (torso ~0.1 m above H) earns lift ~0.25; full reward needs the torso JUMP_RISE above
+H, which legs that are already straight can only reach airborne, and gravity brings the body back, so
+the best policy leaves the ground upright again and again.
+
+Rendering bypasses dm_control's renderer: one `mujoco.Renderer` per env with shadows, reflections
+and the skybox turned off (they are most of the cost of a 64x64 frame on a software GL).
+"""
+import argparse
+import os
+
+os.environ.setdefault("MUJOCO_GL", "egl")  # headless rendering on CPU (Mesa); OSMesa is not installed
+
+import mujoco
+import numpy as np
+from dm_control import mujoco as dm_mujoco
+from dm_control.suite import common
+from dm_control.suite.utils import randomizers
+from dm_control.utils import rewards
+
+BODIES = ("walker", "stickman")
+TASKS = ("stand", "walk", "run", "jump")
+VIEWS = ("side", "diagonal")
+
+CONTROL_TIMESTEP = 0.025  # dm_control walker: 10 physics steps of 0.0025 s
+ACTION_REPEAT = 2  # Dreamer / GenRL on DMC
+EPISODE_STEPS = 500  # agent steps: 1000 control steps = 25 s
+STAND_HEIGHT = {"walker": 1.2, "stickman": 1.15}  # dm_control walker / GenRL stickman
+MOVE_SPEED = {"stand": 0.0, "walk": 1.0, "run": 8.0, "jump": 0.0}  # m/s, dm_control walker
+JUMP_RISE = 0.4  # m above the standing height for the full jump reward (our definition)
+
+# App. D, Table 3: (min, max) return used by Eq. 8. Jump has no public definition; ours differs from the
+# paper's, so its bounds are measured on our task: min = random policy, max = our jump expert
+# (experts.py). Until that expert exists, Table 3's values stand, flagged by SCORE_SOURCE.
+SCORE_BOUNDS = {"stand": (150.0, 970.0), "walk": (45.0, 960.0), "run": (30.0, 800.0), "jump": (120.0, 650.0)}
+SCORE_SOURCE = {"stand": "Table 3", "walk": "Table 3", "run": "Table 3", "jump": "Table 3 (placeholder bounds: not yet measured for our jump)"}
+
+# Side camera: dm_control's walker camera. Diagonal camera (new, paper Fig. 2): behind the body at 45
+# degrees in the horizontal plane, same distance (2 m) and the same 30 degree downward tilt, tracking
+# the COM. Stickman's cameras sit 0.2 m higher (relative to its torso) so that its head is in frame.
+_CAMERAS = """
+      <camera name="side" pos="0 -2 {z}" euler="60 0 0" mode="trackcom"/>
+      <camera name="diagonal" pos="-1.414 -1.414 {z}" xyaxes="0.707 -0.707 0 0.354 0.354 0.866" mode="trackcom"/>"""
+
+_STICKMAN_LEG = """
+      <body name="{s}_thigh" pos="0 {y} -0.25">
+        <joint name="{s}_hip" range="-20 100"/>
+        <geom name="{s}_thigh" pos="0 0 -0.225" size="0.05 0.225"/>
+        <body name="{s}_leg" pos="0 0 -0.7">
+          <joint name="{s}_knee" pos="0 0 0.25" range="-150 0"/>
+          <geom name="{s}_leg" size="0.04 0.25"/>
+          <body name="{s}_foot" pos="0.06 0 -0.25">
+            <joint name="{s}_ankle" pos="-0.06 0 0" range="-45 45"/>
+            <geom name="{s}_foot" zaxis="1 0 0" size="0.04 0.1"/>
+          </body>
+        </body>
+      </body>"""
+
+_STICKMAN_ARM = """
+      <body name="{s}_upper_arm" pos="0 {y} 0.2">
+        <joint name="{s}_shoulder" range="-20 100"/>
+        <geom name="{s}_upper_arm" pos="0 0 -0.135" size="0.04 0.135"/>
+        <body name="{s}_forearm" pos="0 0 -0.27">
+          <joint name="{s}_elbow" range="0 150"/>
+          <geom name="{s}_forearm" pos="0 0 -0.15" size="0.035 0.15"/>
+          <geom name="{s}_hand" type="sphere" pos="0 0 -0.35" size="0.05"/>
+        </body>
+      </body>"""
+
+
+def _stickman_xml(walker_xml):
+    """The walker XML with its torso subtree replaced by the stickman's (FACTS.md: GenRL stickman)."""
+    head, rest = walker_xml.split('<body name="torso"', 1)
+    tail = rest.split("</worldbody>", 1)[1]
+    limbs = "".join(_STICKMAN_LEG.format(s=s, y=y) for s, y in (("right", -0.05), ("left", 0.05)))
+    limbs += "".join(_STICKMAN_ARM.format(s=s, y=y) for s, y in (("right", -0.1), ("left", 0.1)))
+    torso = f"""<body name="torso" pos="0 0 1.25" childclass="walker">
+      <light name="light" pos="0 0 2" mode="trackcom"/>{_CAMERAS.format(z=0.9)}
+      <joint name="rootz" axis="0 0 1" type="slide" limited="false" armature="0" damping="0"/>
+      <joint name="rootx" axis="1 0 0" type="slide" limited="false" armature="0" damping="0"/>
+      <joint name="rooty" axis="0 1 0" type="hinge" limited="false" armature="0" damping="0"/>
+      <geom name="torso" size="0.06 0.25"/>
+      <geom name="neck" pos="0 0 0.3" size="0.045 0.045"/>
+      <geom name="head" type="sphere" pos="0 0 0.445" size="0.1"/>{limbs}
+    </body>
+  </worldbody>"""
+    motors = "".join(
+        f'\n    <motor name="{s}_{j}" joint="{s}_{j}" gear="{g}"/>'
+        for s in ("right", "left")
+        for j, g in (("hip", 100), ("knee", 50), ("ankle", 20), ("shoulder", 100), ("elbow", 50))
+    )
+    tail = tail.split("<actuator>", 1)[0] + f"<actuator>{motors}\n  </actuator>\n</mujoco>\n"
+    return head + torso + tail
+
+
+def model_xml(body):
+    """MJCF string of a body, with both cameras."""
+    walker = common.read_model("walker.xml").decode()
+    cams = '<camera name="side" pos="0 -2 .7" euler="60 0 0" mode="trackcom"/>\n      <camera name="back" pos="-2 0 .5" xyaxes="0 -1 0 1 0 3" mode="trackcom"/>'
+    assert cams in walker, "dm_control's walker.xml changed: update envs.py"
+    walker = walker.replace(cams, _CAMERAS.format(z=0.7).strip())
+    return walker if body == "walker" else _stickman_xml(walker)
+
+
+def _check_name(kind, value, valid):
+    if value not in valid:
+        raise ValueError(f"unknown {kind} {value!r}: valid {kind}s are {', '.join(valid)}")
+
+
+def task_reward(physics, body, task):
+    """The shared reward of one control step (module docstring); equals dm_control's walker for stand/walk/run."""
+    height = physics.named.data.xpos["torso", "z"]
+    stand_height = STAND_HEIGHT[body]
+    standing = rewards.tolerance(height, bounds=(stand_height, float("inf")), margin=stand_height / 2)
+    upright = (1 + physics.named.data.xmat["torso", "zz"]) / 2
+    stand = (3 * standing + upright) / 4
+    if task == "stand":
+        return stand
+    if task == "jump":
+        lift = np.clip((height - stand_height) / JUMP_RISE, 0.0, 1.0)
+        return stand * (5 * lift + 1) / 6
+    speed = MOVE_SPEED[task]
+    com_vx = physics.named.data.sensordata["torso_subtreelinvel"][0]
+    move = rewards.tolerance(com_vx, bounds=(speed, float("inf")), margin=speed / 2, value_at_margin=0.5, sigmoid="linear")
+    return stand * (5 * move + 1) / 6
+
+
+def normalized_score(task, episode_return):
+    """Eq. 8, in percent: 100 (R - R_min) / (R_max - R_min) with SCORE_BOUNDS (Table 3)."""
+    _check_name("task", task, TASKS)
+    low, high = SCORE_BOUNDS[task]
+    return 100.0 * (np.asarray(episode_return, dtype=np.float64) - low) / (high - low)
+
+
+class Env:
+    """One body doing one task, seen from one camera. Gymnasium-style reset()/step()."""
+
+    def __init__(self, body, task, view="side", seed=0, size=64):
+        _check_name("body", body, BODIES)
+        _check_name("task", task, TASKS)
+        _check_name("view", view, VIEWS)
+        self.body, self.task, self.view, self.size = body, task, view, size
+        self.physics = dm_mujoco.Physics.from_xml_string(model_xml(body), common.ASSETS)
+        self.action_dim = self.physics.model.nu  # walker 6, stickman 10
+        self.obs_dim = len(self._observation())  # walker 24, stickman 36
+        self._random = np.random.RandomState(seed)
+        self._renderer = None
+        self._steps = 0
+
+    def _observation(self):
+        """dm_control walker's observation for either body: body orientations (xx, xz), torso height, qvel."""
+        data = self.physics.named.data
+        orientations = data.xmat[1:, ["xx", "xz"]].ravel()
+        return np.concatenate([orientations, [data.xpos["torso", "z"]], self.physics.data.qvel]).astype(np.float32)
+
+    def reset(self, seed=None):
+        """Random joint angles (root pitch uniform in [-pi, pi]), then the body falls: dm_control walker's start."""
+        if seed is not None:
+            self._random = np.random.RandomState(seed)
+        with self.physics.reset_context():
+            randomizers.randomize_limited_and_rotational_joints(self.physics, self._random)
+        self._steps = 0
+        return self._observation(), {}
+
+    def step(self, action):
+        action = np.asarray(action, dtype=np.float64)
+        if action.shape != (self.action_dim,):
+            raise ValueError(f"{self.body} takes actions of shape ({self.action_dim},), got {action.shape}")
+        if not np.all(np.isfinite(action)):
+            raise ValueError(f"action contains NaN or inf: {action}")
+        self.physics.set_control(np.clip(action, -1.0, 1.0))
+        reward = 0.0
+        for _ in range(ACTION_REPEAT):
+            self.physics.step(round(CONTROL_TIMESTEP / self.physics.model.opt.timestep))
+            reward += task_reward(self.physics, self.body, self.task)
+        self._steps += 1
+        truncated = self._steps >= EPISODE_STEPS
+        return self._observation(), float(reward), False, truncated, {}
+
+    def render(self, view=None, size=None):
+        """An RGB uint8 frame (size, size, 3) from this env's camera (or `view`), default 64x64."""
+        view = view or self.view
+        _check_name("view", view, VIEWS)
+        size = size or self.size
+        if self._renderer is None or self._renderer.height != size:
+            self._renderer = mujoco.Renderer(self.physics.model.ptr, size, size)
+            for flag in (mujoco.mjtRndFlag.mjRND_SHADOW, mujoco.mjtRndFlag.mjRND_REFLECTION, mujoco.mjtRndFlag.mjRND_SKYBOX):
+                self._renderer.scene.flags[flag] = 0
+        self._renderer.update_scene(self.physics.data.ptr, camera=view)
+        return self._renderer.render()
+
+    def close(self):
+        if self._renderer is not None:
+            self._renderer.close()
+            self._renderer = None
+
+
+def make_env(body, task, view="side", seed=0):
+    """An Env; ValueError listing the valid names for an unknown body, task or view."""
+    return Env(body, task, view, seed)
+
+
+def show(path="docs/bodies.png", size=192):
+    """One PNG: rows walker, stickman; columns side, diagonal view; bodies standing, limbs slightly bent."""
+    import cv2
+
+    rows = []
+    for body in BODIES:
+        env = make_env(body, "stand")
+        qpos = env.physics.named.data.qpos
+        for joint, angle in (("hip", 20), ("knee", -30), ("shoulder", 30), ("elbow", 40)):
+            for side, sign in (("right", 1), ("left", -0.5)):
+                if f"{side}_{joint}" in qpos.axes.row.names:
+                    qpos[f"{side}_{joint}"] = np.deg2rad(angle * sign)
+        env.physics.forward()
+        rows.append(np.concatenate([env.render(view, size) for view in VIEWS], axis=1))
+        env.close()
+    os.makedirs(os.path.dirname(path) or ".", exist_ok=True)
+    cv2.imwrite(path, cv2.cvtColor(np.concatenate(rows, axis=0), cv2.COLOR_RGB2BGR))
+    return path
+
+
+if __name__ == "__main__":
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--show", action="store_true", help="write docs/bodies.png: both bodies x both views")
+    args = parser.parse_args()
+    if args.show:
+        print("wrote", show())
+    else:
+        parser.print_help()

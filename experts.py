@@ -1,0 +1,342 @@
+"""Sec. 5: per-task expert policies that generate the demonstrations D_demo and the task part of D_body.
+
+The paper trains its experts with Dreamer from pixels (GPU-days). Here each expert is Soft
+Actor-Critic (Haarnoja et al. 2018) on proprioceptive state with the true task reward: the expert
+only has to produce good behaviour, and state-based SAC reaches it in hours on a CPU.
+
+All tasks of one body train in lockstep in one process as an *ensemble*: every network is a stack
+of per-task weights applied with batched matrix products (torch.baddbmm), so 4 tasks cost little
+more than 1 in a small-MLP regime dominated by per-call overhead ("fused critics", FACTS.md).
+Each task has its own env, replay buffer, networks, temperature and optimiser state; nothing is
+shared but the matrix multiply.
+
+Outputs (committed, small, actor only, float16):
+  experts/<body>_<task>.pt                 the final policy
+  experts/history/<body>_<task>_<step>.pt  snapshots along training: the learning history D_body replays
+Training state (networks, optimisers, replay; not committed) lives in --ckpt-dir and --resume continues.
+"""
+import argparse
+import csv
+import math
+import os
+import time
+from dataclasses import asdict, dataclass
+
+import numpy as np
+import torch
+import torch.nn as nn
+import torch.nn.functional as F
+from tqdm import tqdm
+
+import envs
+
+EXPERT_DIR = os.path.join(os.path.dirname(os.path.abspath(__file__)), "experts")
+
+
+@dataclass
+class ExpertConfig:
+    steps: int = 500_000  # agent steps per task (action repeat 2); run needs ~0.5M, stand far fewer
+    seed_steps: int = 5_000  # uniform random actions before the first update (Yarats & Kostrikov pytorch_sac)
+    batch: int = 256  # SAC paper
+    hidden: int = 256  # SAC paper: 2 x 256
+    lr: float = 3e-4  # SAC paper
+    gamma: float = 0.99  # SAC paper
+    tau: float = 0.005  # target critic EMA, SAC paper
+    init_alpha: float = 0.1  # pytorch_sac on DMC
+    snapshot_every: int = 50_000  # agent steps between history snapshots (100 episodes)
+    eval_every: int = 10_000  # agent steps between 1-episode deterministic evaluations
+    checkpoint_minutes: float = 15.0  # wall-clock between full checkpoints (replay included)
+    seed: int = 0
+
+
+# Fields that change what is learned: a resumed run must keep them (steps and logging may change).
+LEARNING_FIELDS = ("seed_steps", "batch", "hidden", "lr", "gamma", "tau", "init_alpha", "seed")
+
+
+class EnsembleLinear(nn.Module):
+    """n independent linear layers applied at once: (n, B, i) -> (n, B, o)."""
+
+    def __init__(self, n, i, o):
+        super().__init__()
+        bound = 1 / math.sqrt(i)  # nn.Linear's default initialisation, per member
+        self.w = nn.Parameter(torch.empty(n, i, o).uniform_(-bound, bound))
+        self.b = nn.Parameter(torch.empty(n, 1, o).uniform_(-bound, bound))
+
+    def forward(self, x):
+        return torch.baddbmm(self.b, x, self.w)
+
+
+def ensemble_mlp(n, i, hidden, o):
+    return nn.Sequential(EnsembleLinear(n, i, hidden), nn.ReLU(), EnsembleLinear(n, hidden, hidden), nn.ReLU(), EnsembleLinear(n, hidden, o))
+
+
+class Actor(nn.Module):
+    """tanh-squashed Gaussian policy, one member per task."""
+
+    def __init__(self, n, obs_dim, action_dim, hidden):
+        super().__init__()
+        self.net = ensemble_mlp(n, obs_dim, hidden, 2 * action_dim)
+
+    def forward(self, obs, deterministic=False):
+        """obs (n, B, obs_dim) -> action (n, B, A) in [-1, 1] and its log-probability (n, B)."""
+        mean, log_std = self.net(obs).chunk(2, dim=-1)
+        if deterministic:
+            return torch.tanh(mean), None
+        std = log_std.clamp(-5, 2).exp()
+        u = mean + std * torch.randn_like(mean)
+        action = torch.tanh(u)
+        # log N(u; mean, std) minus the tanh Jacobian, log(1 - tanh(u)^2) written stably (SAC App. C)
+        log_prob = (-0.5 * ((u - mean) / std) ** 2 - std.log() - 0.5 * math.log(2 * math.pi)).sum(-1)
+        log_prob = log_prob - (2 * (math.log(2) - u - F.softplus(-2 * u))).sum(-1)
+        return action, log_prob
+
+
+class Critic(nn.Module):
+    """Twin Q-functions for n tasks, fused into one ensemble of 2n members."""
+
+    def __init__(self, n, obs_dim, action_dim, hidden):
+        super().__init__()
+        self.net = ensemble_mlp(2 * n, obs_dim + action_dim, hidden, 1)
+
+    def forward(self, obs, action):
+        """(n, B, .) -> (2, n, B): Q1 and Q2."""
+        x = torch.cat([obs, action], -1).repeat(2, 1, 1)
+        return self.net(x).squeeze(-1).unflatten(0, (2, -1))
+
+
+class Replay:
+    """One fixed-size buffer per task, stored as (n, capacity, .) arrays."""
+
+    def __init__(self, n, capacity, obs_dim, action_dim):
+        self.obs = np.zeros((n, capacity, obs_dim), np.float32)
+        self.next_obs = np.zeros((n, capacity, obs_dim), np.float32)
+        self.action = np.zeros((n, capacity, action_dim), np.float32)
+        self.reward = np.zeros((n, capacity), np.float32)
+        self.size = 0
+
+    def add(self, obs, action, reward, next_obs):
+        i = self.size
+        self.obs[:, i], self.action[:, i], self.reward[:, i], self.next_obs[:, i] = obs, action, reward, next_obs
+        self.size += 1
+
+    def sample(self, batch, rng):
+        idx = rng.integers(0, self.size, size=(len(self.obs), batch))
+        take = lambda a: torch.as_tensor(np.take_along_axis(a, idx.reshape(idx.shape + (1,) * (a.ndim - 2)), axis=1))
+        return take(self.obs), take(self.action), take(self.reward), take(self.next_obs)
+
+
+def sac_update(actor, critic, critic_target, log_alpha, optims, batch, cfg, target_entropy):
+    """One SAC step for every task of the ensemble; returns the mean losses."""
+    obs, action, reward, next_obs = batch
+    alpha = log_alpha.exp().detach()[:, None]  # (n, 1)
+    with torch.no_grad():
+        next_action, next_log_prob = actor(next_obs)
+        target_q = critic_target(next_obs, next_action).min(0).values - alpha * next_log_prob
+        target_q = reward + cfg.gamma * target_q  # no terminal states: DMC episodes only time out
+    critic_loss = ((critic(obs, action) - target_q) ** 2).mean(dim=(1, 2)).sum()  # sum over members: per-task gradients
+    optims["critic"].zero_grad(set_to_none=True)
+    critic_loss.backward()
+    optims["critic"].step()
+
+    new_action, log_prob = actor(obs)
+    q = critic(obs, new_action).min(0).values
+    actor_loss = (alpha * log_prob - q).mean(1).sum()
+    optims["actor"].zero_grad(set_to_none=True)
+    actor_loss.backward()
+    optims["actor"].step()
+
+    alpha_loss = (-log_alpha[:, None] * (log_prob.detach() + target_entropy)).mean(1).sum()
+    optims["alpha"].zero_grad(set_to_none=True)
+    alpha_loss.backward()
+    optims["alpha"].step()
+
+    with torch.no_grad():
+        for p, p_target in zip(critic.parameters(), critic_target.parameters()):
+            p_target.lerp_(p, cfg.tau)
+    n = len(log_alpha)
+    return critic_loss.item() / n, actor_loss.item() / n
+
+
+def expert_path(body, task, step=None):
+    if step is None:
+        return os.path.join(EXPERT_DIR, f"{body}_{task}.pt")
+    return os.path.join(EXPERT_DIR, "history", f"{body}_{task}_{step:07d}.pt")
+
+
+def save_actor_member(actor, member, body, task, path, step):
+    """Write one task's actor, float16, as a 1-member Actor state dict."""
+    state = {k: v[member : member + 1].detach().half() for k, v in actor.state_dict().items()}
+    meta = {"body": body, "task": task, "step": step, "hidden": actor.net[0].w.shape[2]}
+    _atomic_save({"actor": state, **meta}, path)
+
+
+def _atomic_save(obj, path):
+    os.makedirs(os.path.dirname(path), exist_ok=True)
+    tmp = path + ".tmp"
+    torch.save(obj, tmp)
+    os.replace(tmp, path)
+
+
+def history_steps(body, task):
+    """The training steps at which snapshots of this expert exist, ascending."""
+    folder = os.path.join(EXPERT_DIR, "history")
+    prefix = f"{body}_{task}_"
+    names = os.listdir(folder) if os.path.isdir(folder) else []
+    return sorted(int(n[len(prefix) : -3]) for n in names if n.startswith(prefix) and n.endswith(".pt"))
+
+
+def load_expert(body, task, step=None):
+    """A policy function obs (obs_dim,) -> (mean action (A,), Actor); step None = the final expert."""
+    envs._check_name("body", body, envs.BODIES)
+    envs._check_name("task", task, envs.TASKS)
+    path = expert_path(body, task, step)
+    if not os.path.exists(path):
+        raise FileNotFoundError(f"no expert weights at {path}: train them with `python experts.py --body {body} --tasks {task}`")
+    saved = torch.load(path, map_location="cpu")
+    w0, w_last = saved["actor"]["net.0.w"], saved["actor"]["net.4.w"]
+    actor = Actor(1, w0.shape[1], w_last.shape[2] // 2, saved["hidden"])
+    actor.load_state_dict({k: v.float() for k, v in saved["actor"].items()})
+    return actor
+
+
+@torch.no_grad()
+def episode_returns(actor, env_list, seed):
+    """Deterministic return of member k of `actor` in env_list[k], all in lockstep; (n,) array."""
+    obs = np.stack([env.reset(seed=seed)[0] for env in env_list])
+    totals, done = np.zeros(len(env_list)), False
+    while not done:
+        action = actor(torch.as_tensor(obs)[:, None], deterministic=True)[0][:, 0].double().numpy()
+        results = [env.step(a) for env, a in zip(env_list, action)]
+        obs = np.stack([r[0] for r in results])
+        totals += [r[1] for r in results]
+        done = results[0][3]
+    return totals
+
+
+def evaluate(body, task, episodes=10, seed=1000, step=None):
+    """Returns of the deterministic expert over `episodes` episodes (seeds seed, seed+1, ...)."""
+    actor, env = load_expert(body, task, step), envs.make_env(body, task)
+    return np.array([episode_returns(actor, [env], seed + k)[0] for k in range(episodes)])
+
+
+def train(body, tasks, cfg, ckpt_dir, resume):
+    """SAC for all `tasks` of `body` in lockstep (module docstring)."""
+    torch.set_num_threads(1)
+    n = len(tasks)
+    env_list = [envs.make_env(body, task, seed=cfg.seed + 100 * k) for k, task in enumerate(tasks)]
+    eval_envs = [envs.make_env(body, task) for task in tasks]
+    obs_dim, action_dim = env_list[0].obs_dim, env_list[0].action_dim
+    torch.manual_seed(cfg.seed)
+    rng = np.random.default_rng(cfg.seed)
+    actor = Actor(n, obs_dim, action_dim, cfg.hidden)
+    critic = Critic(n, obs_dim, action_dim, cfg.hidden)
+    critic_target = Critic(n, obs_dim, action_dim, cfg.hidden)
+    critic_target.load_state_dict(critic.state_dict())
+    log_alpha = torch.full((n,), math.log(cfg.init_alpha), requires_grad=True)
+    optims = {
+        "actor": torch.optim.Adam(actor.parameters(), lr=cfg.lr),
+        "critic": torch.optim.Adam(critic.parameters(), lr=cfg.lr),
+        "alpha": torch.optim.Adam([log_alpha], lr=cfg.lr),
+    }
+    target_entropy = -float(action_dim)  # SAC: -|A|
+    replay = Replay(n, cfg.steps, obs_dim, action_dim)
+    step = 0
+    ckpt = os.path.join(ckpt_dir, f"{body}_{'-'.join(tasks)}.pt")
+    if resume and os.path.exists(ckpt):
+        state = torch.load(ckpt, map_location="cpu", weights_only=False)
+        changed = [k for k in LEARNING_FIELDS if state["config"][k] != getattr(cfg, k)]
+        if changed or state["tasks"] != list(tasks):
+            raise ValueError(f"{ckpt} was trained with other {', '.join(changed) or 'tasks'}; pass the same flags or delete it")
+        for name, module in (("actor", actor), ("critic", critic), ("critic_target", critic_target)):
+            module.load_state_dict(state[name])
+        for name, opt in optims.items():
+            opt.load_state_dict(state["optim_" + name])
+        with torch.no_grad():
+            log_alpha.copy_(state["log_alpha"])
+        replay.size = state["replay_size"]
+        for key in ("obs", "next_obs", "action", "reward"):
+            getattr(replay, key)[:, : replay.size] = state["replay"][key]
+        step, rng = state["step"], state["rng"]
+        torch.set_rng_state(state["torch_rng"])
+        print(f"resumed {ckpt} at step {step}")
+
+    def save_checkpoint():
+        _atomic_save(
+            {
+                "config": asdict(cfg), "tasks": list(tasks), "step": step, "rng": rng, "torch_rng": torch.get_rng_state(),
+                "actor": actor.state_dict(), "critic": critic.state_dict(), "critic_target": critic_target.state_dict(),
+                "log_alpha": log_alpha.detach(), "replay_size": replay.size,
+                "replay": {k: getattr(replay, k)[:, : replay.size] for k in ("obs", "next_obs", "action", "reward")},
+                **{"optim_" + k: opt.state_dict() for k, opt in optims.items()},
+            },
+            ckpt,
+        )
+
+    log_path = os.path.join(ckpt_dir, f"{body}_log.csv")
+    obs = np.stack([env.reset()[0] for env in env_list])
+    last_ckpt, t0, losses = time.time(), time.time(), (float("nan"), float("nan"))
+    bar = tqdm(total=cfg.steps, initial=step, desc=f"SAC {body} {'/'.join(tasks)}", mininterval=30)
+    while step < cfg.steps:
+        if step < cfg.seed_steps:
+            action = rng.uniform(-1, 1, (n, action_dim)).astype(np.float32)
+        else:
+            with torch.no_grad():
+                action = actor(torch.as_tensor(obs)[:, None])[0][:, 0].numpy()
+        results = [env.step(a) for env, a in zip(env_list, action)]
+        next_obs = np.stack([r[0] for r in results])
+        replay.add(obs, action, [r[1] for r in results], next_obs)
+        obs = next_obs
+        if results[0][3]:  # all envs time out together (500 steps)
+            obs = np.stack([env.reset()[0] for env in env_list])
+        if step >= cfg.seed_steps:
+            losses = sac_update(actor, critic, critic_target, log_alpha, optims, replay.sample(cfg.batch, rng), cfg, target_entropy)
+        step += 1
+        bar.update(1)
+        if step % cfg.snapshot_every == 0 or step == cfg.steps:
+            for k, task in enumerate(tasks):
+                save_actor_member(actor, k, body, task, expert_path(body, task, step), step)
+                save_actor_member(actor, k, body, task, expert_path(body, task), step)
+        if step % cfg.eval_every == 0:
+            scores = [float(envs.normalized_score(t, r)) for t, r in zip(tasks, episode_returns(actor, eval_envs, 10_000 + step))]
+            new = not os.path.exists(log_path)
+            with open(log_path, "a", newline="") as f:
+                w = csv.writer(f)
+                if new:
+                    w.writerow(["step", "minutes", "critic_loss", "actor_loss"] + [f"score_{t}" for t in tasks] + [f"alpha_{t}" for t in tasks])
+                w.writerow([step, round((time.time() - t0) / 60, 1), round(losses[0], 4), round(losses[1], 4)] + [round(s, 1) for s in scores] + [round(a, 4) for a in log_alpha.exp().tolist()])
+            bar.write(f"step {step}: score " + " ".join(f"{t} {s:.1f}" for t, s in zip(tasks, scores)))
+        if time.time() - last_ckpt > 60 * cfg.checkpoint_minutes or step == cfg.steps:
+            save_checkpoint()
+            last_ckpt = time.time()
+    bar.close()
+    print(f"done: {body} {tasks}; final policies in {EXPERT_DIR}")
+
+
+def main():
+    parser = argparse.ArgumentParser(description="Train (or --eval) the per-task SAC experts of one body.")
+    parser.add_argument("--body", choices=envs.BODIES)
+    parser.add_argument("--tasks", nargs="+", default=list(envs.TASKS), choices=envs.TASKS)
+    parser.add_argument("--ckpt-dir", default="runs/experts", help="training state (not committed)")
+    parser.add_argument("--resume", action="store_true", help="continue from --ckpt-dir")
+    parser.add_argument("--eval", action="store_true", help="score the committed final experts: 10 episodes each")
+    for field, value in asdict(ExpertConfig()).items():
+        parser.add_argument("--" + field.replace("_", "-"), type=type(value), default=value)
+    args = parser.parse_args()
+    if args.eval:
+        bodies = [args.body] if args.body else envs.BODIES
+        print("| body | task | return (mean of 10) | normalised score | training steps |\n|---|---|---|---|---|")
+        for body in bodies:
+            for task in args.tasks:
+                returns = evaluate(body, task)
+                step = torch.load(expert_path(body, task), map_location="cpu")["step"]
+                print(f"| {body} | {task} | {returns.mean():.1f} | {envs.normalized_score(task, returns.mean()):.1f} | {step} |")
+        return
+    if args.body is None:
+        parser.error("--body is required to train (or pass --eval)")
+    cfg = ExpertConfig(**{f: getattr(args, f) for f in asdict(ExpertConfig())})
+    os.makedirs(args.ckpt_dir, exist_ok=True)
+    train(args.body, args.tasks, cfg, args.ckpt_dir, args.resume)
+
+
+if __name__ == "__main__":
+    main()
