@@ -122,7 +122,7 @@ def model_xml(body):
 
 def _check_name(kind, value, valid):
     if value not in valid:
-        raise ValueError(f"unknown {kind} {value!r}: valid {kind}s are {', '.join(valid)}")
+        raise ValueError(f"unknown {kind} {value!r}: valid {kind} names are {', '.join(valid)}")
 
 
 def task_reward(physics, body, task):

@@ -213,10 +213,35 @@ def episode_returns(actor, env_list, seed):
     return totals
 
 
+def random_returns(body, task, episodes=10, seed=2000):
+    """Returns of the uniform random policy: the lower bound of Eq. 8 for our jump."""
+    env, rng, returns = envs.make_env(body, task), np.random.default_rng(seed), []
+    for k in range(episodes):
+        env.reset(seed=seed + k)
+        returns.append(sum(env.step(rng.uniform(-1, 1, env.action_dim))[1] for _ in range(envs.EPISODE_STEPS)))
+    return np.array(returns)
+
+
 def evaluate(body, task, episodes=10, seed=1000, step=None):
     """Returns of the deterministic expert over `episodes` episodes (seeds seed, seed+1, ...)."""
     actor, env = load_expert(body, task, step), envs.make_env(body, task)
     return np.array([episode_returns(actor, [env], seed + k)[0] for k in range(episodes)])
+
+
+def select_tasks(state, keep):
+    """A training checkpoint restricted to the tasks at positions `keep`: resuming with fewer --tasks stops
+    the experts that are done, and the others go on faster (every ensemble tensor is sliced per member)."""
+    n, rows = len(state["tasks"]), torch.tensor(keep)
+    critic_rows = torch.cat([rows, rows + n])  # the fused twin critics: Q1 members, then Q2 members
+    for name, r in (("actor", rows), ("critic", critic_rows), ("critic_target", critic_rows)):
+        state[name] = {k: v[r] for k, v in state[name].items()}
+    state["log_alpha"] = state["log_alpha"][rows]
+    for name, r in (("actor", rows), ("critic", critic_rows), ("alpha", rows)):
+        for adam in state["optim_" + name]["state"].values():
+            adam["exp_avg"], adam["exp_avg_sq"] = adam["exp_avg"][r], adam["exp_avg_sq"][r]
+    state["replay"] = {k: v[keep] for k, v in state["replay"].items()}
+    state["tasks"] = [state["tasks"][i] for i in keep]
+    return state
 
 
 def train(body, tasks, cfg, ckpt_dir, resume):
@@ -241,12 +266,14 @@ def train(body, tasks, cfg, ckpt_dir, resume):
     target_entropy = -float(action_dim)  # SAC: -|A|
     replay = Replay(n, cfg.steps, obs_dim, action_dim)
     step = 0
-    ckpt = os.path.join(ckpt_dir, f"{body}_{'-'.join(tasks)}.pt")
+    ckpt = os.path.join(ckpt_dir, f"{body}.pt")
     if resume and os.path.exists(ckpt):
         state = torch.load(ckpt, map_location="cpu", weights_only=False)
         changed = [k for k in LEARNING_FIELDS if state["config"][k] != getattr(cfg, k)]
-        if changed or state["tasks"] != list(tasks):
-            raise ValueError(f"{ckpt} was trained with other {', '.join(changed) or 'tasks'}; pass the same flags or delete it")
+        if changed or not set(tasks) <= set(state["tasks"]):
+            raise ValueError(f"{ckpt} was trained with other {', '.join(changed) or 'tasks: ' + ' '.join(state['tasks'])}; pass the same flags or delete it")
+        if state["tasks"] != list(tasks):
+            state = select_tasks(state, [state["tasks"].index(t) for t in tasks])
         for name, module in (("actor", actor), ("critic", critic), ("critic_target", critic_target)):
             module.load_state_dict(state[name])
         for name, opt in optims.items():
@@ -272,7 +299,7 @@ def train(body, tasks, cfg, ckpt_dir, resume):
             ckpt,
         )
 
-    log_path = os.path.join(ckpt_dir, f"{body}_log.csv")
+    log_path = os.path.join(ckpt_dir, f"{body}_{'-'.join(tasks)}_log.csv")
     obs = np.stack([env.reset()[0] for env in env_list])
     last_ckpt, t0, losses = time.time(), time.time(), (float("nan"), float("nan"))
     bar = tqdm(total=cfg.steps, initial=step, desc=f"SAC {body} {'/'.join(tasks)}", mininterval=30)
@@ -319,9 +346,17 @@ def main():
     parser.add_argument("--ckpt-dir", default="runs/experts", help="training state (not committed)")
     parser.add_argument("--resume", action="store_true", help="continue from --ckpt-dir")
     parser.add_argument("--eval", action="store_true", help="score the committed final experts: 10 episodes each")
+    parser.add_argument("--bounds", action="store_true", help="random-policy returns (Eq. 8's R_min) per body and task")
     for field, value in asdict(ExpertConfig()).items():
         parser.add_argument("--" + field.replace("_", "-"), type=type(value), default=value)
     args = parser.parse_args()
+    if args.bounds:
+        print("| body | task | random return (mean +- std of 10) |\n|---|---|---|")
+        for body in [args.body] if args.body else envs.BODIES:
+            for task in args.tasks:
+                returns = random_returns(body, task)
+                print(f"| {body} | {task} | {returns.mean():.1f} +- {returns.std():.1f} |")
+        return
     if args.eval:
         bodies = [args.body] if args.body else envs.BODIES
         print("| body | task | return (mean of 10) | normalised score | training steps |\n|---|---|---|---|---|")

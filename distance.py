@@ -1,0 +1,109 @@
+"""Eq. 6-7 and App. B: the temporal distance network d(s_i, s_j) and its regression + contrastive loss.
+
+Eq. 6, D^dis(s_i, s_j) = (j - i) / T for j > i in one trajectory. T is "the maximum trajectory horizon"; pairs
+are drawn inside a training segment, so the longest horizon a pair spans is the segment length, and that is the
+T we use (train.py passes seq_len). LEXA (Mendonca et al. 2021) labels (j - i) / H over its sampled sequences the
+same way. With the 500-step episode length instead, every same-trajectory label would sit below 0.1 and the
+goal reward -d would barely change over an imagined horizon of 15 steps.
+
+Eq. 7's sign. As printed, Eq. 7 subtracts the contrastive term, -E_{i != j} ||d(s^(i), s^(j)) - 1||^2. Minimised
+literally, it rewards predictions far from 1 without bound (d -> +-inf for states of different trajectories),
+which contradicts the text ("penalizes small predicted distances between states from different trajectories").
+We read the minus as a typo and add the term, regressing cross-trajectory pairs to 1, LEXA's label for negatives.
+
+Pair sampling (the paper does not say; ours): positives are uniform pairs i < j inside one segment that do not
+cross an episode start; negatives are uniform pairs of steps from two segments of different episode ids (a
+segment that runs into the next episode keeps its first episode's id: rare, and label noise only if that next
+episode is the other segment's). Eq. 7 is a sum of two expectations, so each term is a mean over its own pairs
+and the two are weighted equally (contrastive_weight = 1); LEXA instead mixes ~10% negatives into one mean,
+i.e. a weight of about 0.11.
+"""
+from dataclasses import dataclass
+
+import torch
+import torch.nn as nn
+
+from world_model import PRESETS as WM_PRESETS, WorldModelConfig, mlp
+
+
+@dataclass
+class DistanceConfig:
+    units: int = 128  # LEXA: 4 x 128 MLP
+    layers: int = 4  # LEXA
+    pairs: int = 1024  # candidate pairs of each kind (same / different trajectory) per batch (ours)
+    contrastive_weight: float = 1.0  # Eq. 7 weighs both expectations equally (LEXA's 10% negatives ~ 0.11)
+    lr: float = 3e-4  # Adam (ours: the usual rate for a small MLP)
+    grad_clip: float = 100.0  # global gradient norm, as the world model (Dreamer V1)
+
+
+PRESETS = {"smoke": dict(units=16, layers=2, pairs=64), "cpu": dict(), "paper": dict()}
+
+
+class DistanceNet(nn.Module):
+    """d_{theta^dis}(s_i, s_j): an MLP on [feat_i, feat_j] -> predicted temporal distance in units of T."""
+
+    def __init__(self, cfg, feat_dim):
+        super().__init__()
+        self.feat_dim = feat_dim
+        self.net = mlp(2 * feat_dim, cfg.units, 1, cfg.layers)
+
+    def forward(self, feat_i, feat_j):
+        """feat_i, feat_j (..., F) -> (...)."""
+        assert feat_i.shape[-1] == feat_j.shape[-1] == self.feat_dim, (feat_i.shape, feat_j.shape)
+        return self.net(torch.cat([feat_i, feat_j], -1)).squeeze(-1)
+
+
+def sample_pairs(episode, is_first, num, generator=None):
+    """Draw `num` candidate pairs of each kind and keep the valid ones (module docstring).
+    episode (B,) long, is_first (B, T) bool -> {'pos': (b, i, j), 'neg': (b1, t1, b2, t2)}, tuples of (P,) / (Q,) long."""
+    B, T = is_first.shape
+    assert episode.shape == (B,) and T >= 2, (episode.shape, is_first.shape)
+    draw = lambda high: torch.randint(high, (num,), generator=generator).to(is_first.device)
+    b, t1, t2 = draw(B), draw(T), draw(T)
+    i, j = torch.minimum(t1, t2), torch.maximum(t1, t2)
+    part = is_first.long().cumsum(1)  # (B, T): which episode of the segment each step belongs to
+    valid = (i < j) & (part[b, i] == part[b, j])
+    pos = (b[valid], i[valid], j[valid])
+    b1, b2, t1, t2 = draw(B), draw(B), draw(T), draw(T)
+    valid = episode[b1] != episode[b2]
+    neg = (b1[valid], t1[valid], b2[valid], t2[valid])
+    return {"pos": pos, "neg": neg}
+
+
+def distance_loss(dist_net, feat, pairs, horizon_T, contrastive_weight=1.0):  # Eq. 7
+    """feat (B, T, F) posterior features, pairs from sample_pairs, horizon_T = T of Eq. 6 -> (loss, metrics).
+    The features are detached: the distance network learns on the world model's states, never shapes them."""
+    feat = feat.detach()
+    b, i, j = pairs["pos"]
+    target = (j - i).to(feat.dtype) / horizon_T  # Eq. 6: D^dis(s_i, s_j) = (j - i) / T
+    d_pos = dist_net(feat[b, i], feat[b, j])  # (P,)
+    regression = ((d_pos - target) ** 2).mean()
+    b1, t1, b2, t2 = pairs["neg"]
+    d_neg = dist_net(feat[b1, t1], feat[b2, t2])  # (Q,)
+    contrastive = ((d_neg - 1) ** 2).sum() / max(len(d_neg), 1)  # + E ||d - 1||^2: Eq. 7 with its sign read as + (module docstring)
+    loss = regression + contrastive_weight * contrastive
+    metrics = {"dist_loss": loss.item(), "dist_regression": regression.item(), "dist_contrastive": contrastive.item(),
+               "dist_pos": d_pos.mean().item(), "dist_neg": d_neg.mean().item() if len(d_neg) else float("nan")}
+    return loss, metrics
+
+
+def bench_update(preset="cpu"):
+    """One distance-network update (pair sampling, forward, backward, clip, Adam step) at a preset's sizes on random
+    features, as a zero-argument function for bench.py to time, and what it measures."""
+    wm = WorldModelConfig(**WM_PRESETS[preset])
+    cfg = DistanceConfig(**PRESETS[preset])
+    feat_dim = wm.deter + wm.stoch
+    dist_net = DistanceNet(cfg, feat_dim)
+    B, T = wm.batch, wm.seq_len
+    feat, episode = torch.randn(B, T, feat_dim), torch.arange(B)
+    is_first = torch.zeros(B, T, dtype=torch.bool)
+    opt = torch.optim.Adam(dist_net.parameters(), lr=cfg.lr)
+
+    def update():
+        loss = distance_loss(dist_net, feat, sample_pairs(episode, is_first, cfg.pairs), T, cfg.contrastive_weight)[0]
+        opt.zero_grad(set_to_none=True)
+        loss.backward()
+        nn.utils.clip_grad_norm_(dist_net.parameters(), cfg.grad_clip)
+        opt.step()
+
+    return update, f"distance update, {preset} preset, batch {B}x{T}, {cfg.pairs} pairs of each kind"

@@ -1,0 +1,163 @@
+"""App. C and Eq. 5: the optimal-transport reward r^ot(s_t) of imagined trajectories against demonstrations.
+
+ROT (Haldar et al., 2022), which the paper cites for r^ot: the cost between an agent frame and a demo
+frame is the cosine distance of their video features p (App. C: the features lie on the unit sphere,
+so the cost lives there, not in the world model's latent space); the entropic OT plan P between the
+two sets of frames, with uniform marginals, comes from Sinkhorn; agent step i earns
+    r_i = -scale * sum_j P_ij C_ij.
+Against several demos, each trajectory takes its rewards from the demo with the smallest total
+transport cost <P, C> (ROT, AIME-NoB). r^ot is a regression target for V_ot (Eq. 5), so it is
+computed without gradient: nothing is differentiated through Sinkhorn.
+
+Which demo frames an imagined segment (T ~ 16 steps) is matched against, the paper leaves open:
+* whole demo (default): the segment's T frames against all M frames of a demo. Each agent step
+  carries mass 1/T, spread over ~M/T demo frames, so a segment is rewarded for reproducing the demo's
+  distribution of frames (App. C's "distributional similarity"); no time alignment is needed, so it
+  works from any imagined start state, and a periodic gait is matched phase by phase (the features
+  are of frame windows, so they carry the direction of motion). Demo frames that no T-step segment
+  can cover (e.g. the first frames of standing up) add a cost common to all segments.
+* window (`demo_offsets`): when imagination starts from the goal-encoder state of demo frame t0
+  (Eq. 5 draws start states from D_demo), the T imagined steps are matched against the T demo
+  frames that follow it, offset .. offset + T - 1 (OT still lets steps swap within the window):
+  a sharper, time-aligned reward at T/M of the cost. With K demos, each demo's window at that
+  offset is a candidate and the best-matching one counts, as for whole demos.
+
+eps is absolute, as in ROT: the cosine cost is bounded in [0, 2] for any demo, so eps = 0.01 means
+the same sharpness on every demo (a relative eps, eps x mean cost, would change with how alike a
+demo's frames are). Costs near 2 make the kernel exp(-C/eps) as small as exp(-200) at eps 0.01.
+
+Sinkhorn is solved here, batched over trajectories and demos, in torch: the scaling-domain iteration
+of POT's ot.sinkhorn, in float64 (FACTS.md: exp(-C/eps) is 0 in float32 for C > 1.03 at eps 0.01,
+which makes the worst frames earn the best reward, 0). POT is the reference the tests check against:
+ot.sinkhorn(method='sinkhorn_log') iteration for iteration, and ot.emd in the small-eps limit. POT
+in the main path was slower at bench() size (B=256, K=10, M=500, one thread, measured): per-pair
+ot.sinkhorn ~5.5 s (numpy) / ~17 s (torch, log), ot.batch.solve_batch ~7 s (scaling) / ~24 s (log),
+against 2-3 s here (2 cores shared with training runs); the log-domain form of this loop was 6-10x
+slower than the scaling form.
+"""
+import time
+from dataclasses import dataclass
+
+import torch
+import torch.nn.functional as F
+
+EPS_MIN = 0.004  # float64: exp(-2/eps) = exp(-500) ~ 7e-218 stays above the smallest normal 2e-308, with room for u, v
+
+
+@dataclass
+class OTConfig:
+    eps: float = 0.01  # Sinkhorn entropic regularisation, absolute on the cosine cost in [0, 2] (ROT: epsilon 0.01 with POT)
+    iters: int = 100  # Sinkhorn iterations, a fixed count without early stop (ROT: niter=100)
+    scale: float = 1.0  # reward scale: sum_t r_t = -scale * <P, C> in [-2 scale, 0] (ROT: sinkhorn_rew_scale)
+    cpu_chunk_bytes: int = 2**20  # CPU: trajectories solved together so their float64 kernels fit the L2 cache (4x faster than one batch at bench size, measured); GPU: one batch
+
+    def __post_init__(self):
+        if not self.eps >= EPS_MIN:
+            raise ValueError(f"OTConfig.eps={self.eps} is below {EPS_MIN}: exp(-C/eps) underflows float64 for cosine costs near 2")
+        if self.iters < 1:
+            raise ValueError(f"OTConfig.iters={self.iters}: Sinkhorn needs at least one iteration")
+
+
+PRESETS = {"smoke": dict(iters=20), "cpu": dict(), "paper": dict()}
+
+
+def cosine_cost(x, y):
+    """C = 1 - cos(x, y) in [0, 2]: x (..., N, D), y (..., M, D) -> (..., N, M); rows need not be unit norm."""
+    cos = F.normalize(x, dim=-1) @ F.normalize(y, dim=-1).mT  # (..., N, M)
+    return (1 - cos).clamp(0, 2)  # rounding can step just outside [0, 2]
+
+
+def sinkhorn(cost, eps, iters):
+    """Entropic OT plans with uniform marginals for a batch of costs (..., N, M), float64 -> (..., N, M).
+
+    POT's ot.sinkhorn iteration (u = 1; then v = b / K^T u, u = a / K v), so after `iters` iterations
+    the plan equals ot.sinkhorn(a, b, C, eps, method='sinkhorn_log', numItermax=iters, stopThr=0).
+    The last update is u's: every row of the plan sums exactly to a = 1/N.
+    """
+    N, M = cost.shape[-2:]
+    kernel = torch.exp(-cost / eps)  # (..., N, M) K = exp(-C/eps) >= exp(-2/eps), a normal float64 for eps >= EPS_MIN
+    u = torch.ones_like(cost[..., :1])  # (..., N, 1)
+    for _ in range(iters):
+        v = (1 / M) / (u.mT @ kernel)  # (..., 1, M) b = 1/M
+        u = (1 / N) / (kernel @ v.mT)  # (..., N, 1) a = 1/N
+    return u * kernel * v  # (..., N, M) P = diag(u) K diag(v)
+
+
+def _check_inputs(agent_p, demo_p, demo_offsets):
+    """One-line ValueErrors for what would otherwise fail deep inside, or silently give a wrong reward."""
+    if agent_p.ndim != 3 or 0 in agent_p.shape:
+        raise ValueError(f"agent_p must be a non-empty (B, T, D) tensor of imagined features, got shape {tuple(agent_p.shape)}")
+    if demo_p.ndim not in (2, 3) or 0 in demo_p.shape:
+        raise ValueError(f"demo_p must be a non-empty (M, D) or (K, M, D) tensor of demo features, got shape {tuple(demo_p.shape)}")
+    if demo_p.shape[-1] != agent_p.shape[-1]:
+        raise ValueError(f"feature sizes differ: agent_p has D={agent_p.shape[-1]}, demo_p has D={demo_p.shape[-1]}")
+    for name, p in (("agent_p", agent_p), ("demo_p", demo_p)):
+        if not torch.isfinite(p).all():
+            raise ValueError(f"{name} contains NaN or inf")
+    if demo_offsets is None:
+        return
+    B, T, _ = agent_p.shape
+    if demo_offsets.shape != (B,) or demo_offsets.is_floating_point():
+        raise ValueError(f"demo_offsets must be a (B,) = ({B},) integer tensor, got {demo_offsets.dtype} of shape {tuple(demo_offsets.shape)}")
+    if (demo_offsets < 0).any():
+        raise ValueError(f"demo_offsets must be >= 0, got min {demo_offsets.min().item()}")
+    if demo_p.shape[-2] < T:
+        raise ValueError(f"windowed matching needs demos of at least T={T} frames, got M={demo_p.shape[-2]}")
+
+
+@torch.no_grad()  # r^ot is a target for V_ot (Eq. 5): no gradient through Sinkhorn
+def ot_reward(agent_p, demo_p, cfg, demo_offsets=None):
+    """Per-step OT reward of B imagined trajectories against the best-matching of K demos (App. C).
+
+    agent_p (B, T, D): video features decoded from imagined states (any norm: normalised here).
+    demo_p (M, D) or (K, M, D): the demos' video features.
+    demo_offsets (B,) integer, optional: windowed matching; agent step t of trajectory b is matched
+      within demo frames demo_offsets[b] + 0..T-1, the window moved back to end at the demo's last
+      frame where it would run past it. Without it, whole-demo matching.
+    Returns reward (B, T) in agent_p's dtype and on its device, and best (B,) the index of the demo
+    each trajectory was matched to.
+    """
+    _check_inputs(agent_p, demo_p, demo_offsets)
+    p = agent_p.to(torch.float64)  # float64 throughout: exp(-C/eps) underflows in float32 (FACTS.md)
+    demo = demo_p.to(p.device, torch.float64).reshape(-1, *demo_p.shape[-2:])  # (K, M, D)
+    (B, T, D), (K, M, _) = p.shape, demo.shape
+    if demo_offsets is None:
+        target = demo.expand(B, K, M, D)  # (B, K, M, D) a view: every trajectory against every whole demo
+    else:
+        start = demo_offsets.to(p.device).clamp(max=M - T)  # (B,)
+        frames = start[:, None] + torch.arange(T, device=p.device)  # (B, T)
+        target = demo[:, frames].transpose(0, 1)  # (B, K, T, D) each trajectory's window in every demo
+    kernel_bytes = 8 * K * T * target.shape[2]  # one trajectory's float64 kernels
+    chunk = max(1, cfg.cpu_chunk_bytes // kernel_bytes) if p.device.type == "cpu" else B
+    step_cost = []  # sum_j P_ij C_ij per trajectory, demo and agent step
+    for p_chunk, target_chunk in zip(p.split(chunk), target.split(chunk)):
+        cost = cosine_cost(p_chunk[:, None], target_chunk)  # (b, K, T, M or T)
+        plan = sinkhorn(cost, cfg.eps, cfg.iters)  # (b, K, T, M or T)
+        step_cost.append((plan * cost).sum(-1))  # (b, K, T)
+    step_cost = torch.cat(step_cost)  # (B, K, T)
+    best = step_cost.sum(-1).argmin(-1)  # (B,) smallest total transport cost <P, C> (ROT)
+    reward = -cfg.scale * step_cost[torch.arange(B, device=p.device), best]  # (B, T)
+    return reward.to(agent_p.dtype), best
+
+
+def bench(B=256, T=16, M=500, K=10, D=64, repeat=3):
+    """Seconds per ot_reward call on one thread, whole-demo and windowed matching (for bench.py)."""
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    gen = torch.Generator().manual_seed(0)
+    agent_p = torch.randn(B, T, D, generator=gen)
+    demo_p = F.normalize(torch.randn(K, M, D, generator=gen), dim=-1)
+    demo_offsets = torch.randint(0, M, (B,), generator=gen)
+    cfg = OTConfig()
+
+    def seconds(**kwargs):
+        ot_reward(agent_p, demo_p, cfg, **kwargs)  # warm-up
+        start = time.perf_counter()
+        for _ in range(repeat):
+            ot_reward(agent_p, demo_p, cfg, **kwargs)
+        return (time.perf_counter() - start) / repeat
+
+    try:
+        return {"B": B, "T": T, "M": M, "K": K, "D": D, "whole_demo_s": seconds(), "window_s": seconds(demo_offsets=demo_offsets)}
+    finally:
+        torch.set_num_threads(threads)

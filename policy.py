@@ -1,0 +1,268 @@
+"""Eq. 4: the goal-conditioned actor pi_psi(a | s, g) and critic V_eta(s, g), trained on imagined rollouts with TD(lambda).
+
+One update (policy_losses), following Dreamer V1/V2's actor-critic:
+  1. start from N D_body posterior states s_t (sample_starts, detached) with goals g (sample_goals),
+  2. imagine H steps with the frozen world model and the actor: s_0 = start, a_k ~ pi(. | s_k, g), s_{k+1} ~ prior,
+  3. reward on arrival r_{k+1} = r^goal(s_{k+1}, g) = -d(s_{k+1}, g) (Sec. 4, the distance network),
+  4. TD(lambda) returns G_k from r_{k+1} and the slow critic's v_{k+1}, bootstrapped from v_H (lambda_return),
+  5. actor loss -G (Eq. 4): its gradient flows back through the frozen dynamics into the actions (Dreamer V1/V2),
+  6. critic loss: V(s_k, g) regressed to sg(G_k) for k < H.
+
+Freezing: `freeze` sets requires_grad False on the world model, distance network and slow critic while the
+rollout is built, so the actor loss gives their parameters no gradient at all (and no weight-gradient work is
+done for them); train.py keeps separate optimisers, so nothing but the actor moves on the actor loss.
+
+Phase 2 (Eq. 5, imitate.py) reuses rollout, lambda_return, actor_loss, critic_loss and freeze with the OT reward,
+a critic V_ot(s) built with goal_dim = 0 (goal None), and the goal vector g as the only thing optimised by L_GI.
+"""
+import contextlib
+import copy
+import math
+from dataclasses import dataclass
+
+import torch
+import torch.nn as nn
+import torch.nn.functional as F
+
+from distance import PRESETS as DIST_PRESETS, DistanceConfig, DistanceNet
+from world_model import PRESETS as WM_PRESETS, WorldModel, WorldModelConfig, mlp, random_batch
+
+
+@dataclass
+class ActorCriticConfig:
+    units: int = 400  # MLP width, Dreamer V1
+    actor_layers: int = 4  # Dreamer V1
+    critic_layers: int = 3  # Dreamer V1
+    horizon: int = 15  # imagined steps H, Dreamer V1 (GenRL: 16)
+    gamma: float = 0.99  # Dreamer V1
+    lambda_: float = 0.95  # TD(lambda), Dreamer V1
+    actor_lr: float = 8e-5  # Adam, Dreamer V1
+    critic_lr: float = 8e-5  # Adam, Dreamer V1
+    grad_clip: float = 100.0  # global gradient norm, Dreamer V1
+    mean_scale: float = 5.0  # pre-tanh mean = 5 tanh(x / 5), Dreamer V1's tanh-normal
+    min_std: float = 0.1  # action std bounds, Dreamer V3
+    max_std: float = 1.0  # Dreamer V3
+    entropy: float = 3e-4  # entropy bonus scale, Dreamer V3
+    slow_critic_rate: float = 0.02  # EMA rate of the slow critic that computes the targets, Dreamer V3
+    return_norm_decay: float = 0.99  # EMA decay of the 5-95 percentile range of returns, Dreamer V3
+    starts: int = 2500  # imagination start states per update: Dreamer V1 starts from all 50x50 posterior states
+    goal_mix: float = 0.5  # share of goals from the goal encoder, the rest D_body posterior states (ours; sample_goals)
+
+
+PRESETS = {
+    "smoke": dict(units=16, actor_layers=2, critic_layers=2, horizon=5, starts=32),
+    # ours: an update costs time linear in starts (~1 s for all 800 states of a 16x50 batch on one core)
+    "cpu": dict(units=256, actor_layers=2, critic_layers=2, starts=256),
+    "paper": dict(units=1024, horizon=16, starts=48 * 48),  # GenRL: horizon 16, all states of a 48x48 batch (FACTS.md)
+}
+
+
+def with_goal(feat, goal):
+    """[feat, goal] with goal (N, G) or (1, G) broadcast over any time axes of feat (N, ..., F); feat alone if goal is None."""
+    if goal is None:
+        return feat
+    goal = goal.reshape(goal.shape[0], *[1] * (feat.dim() - 2), goal.shape[-1])
+    return torch.cat([feat, goal.expand(*feat.shape[:-1], -1)], -1)
+
+
+class Actor(nn.Module):
+    """pi(a | s, g): a tanh-squashed Gaussian (Dreamer V1's tanh-normal) on [feat, goal]."""
+
+    def __init__(self, cfg, feat_dim, goal_dim, action_dim):
+        super().__init__()
+        self.cfg, self.goal_dim = cfg, goal_dim
+        self.net = mlp(feat_dim + goal_dim, cfg.units, 2 * action_dim, cfg.actor_layers)
+
+    def distribution(self, feat, goal):
+        """The Gaussian before the tanh: feat (N, F), goal (N, G) or (1, G) -> mean, std (N, A)."""
+        cfg = self.cfg
+        assert goal.shape[-1] == self.goal_dim and goal.dim() == feat.dim() == 2, (feat.shape, goal.shape)
+        mean, std = self.net(with_goal(feat, goal)).chunk(2, -1)
+        mean = cfg.mean_scale * torch.tanh(mean / cfg.mean_scale)
+        std = (cfg.max_std - cfg.min_std) * torch.sigmoid(std + 2.0) + cfg.min_std  # Dreamer V3's bounded std
+        return mean, std
+
+    def forward(self, feat, goal, deterministic=False):
+        """feat (N, F), goal (N, G) -> action (N, A) in [-1, 1], log pi(action | s, g) (N,) (None if deterministic)."""
+        mean, std = self.distribution(feat, goal)
+        if deterministic:
+            return torch.tanh(mean), None
+        u = mean + std * torch.randn_like(mean)  # reparameterised: the actor loss differentiates through the sample
+        action = torch.tanh(u)
+        # log N(u; mean, std) minus the tanh Jacobian log(1 - tanh(u)^2), written stably (SAC, Haarnoja et al. 2018, App. C)
+        log_prob = (-0.5 * ((u - mean) / std) ** 2 - std.log() - 0.5 * math.log(2 * math.pi)).sum(-1)
+        log_prob = log_prob - (2 * (math.log(2) - u - F.softplus(-2 * u))).sum(-1)
+        return action, log_prob
+
+
+class Critic(nn.Module):
+    """V(s, g) on [feat, goal]; goal_dim = 0 gives phase 2's V_ot(s) (goal None)."""
+
+    def __init__(self, cfg, feat_dim, goal_dim):
+        super().__init__()
+        self.goal_dim = goal_dim
+        self.net = mlp(feat_dim + goal_dim, cfg.units, 1, cfg.critic_layers)
+
+    def forward(self, feat, goal):
+        """feat (N, ..., F), goal (N, G) or None -> value (N, ...)."""
+        assert (goal is None) == (self.goal_dim == 0), "pass a goal exactly when goal_dim > 0"
+        return self.net(with_goal(feat, goal)).squeeze(-1)
+
+
+class ReturnNorm(nn.Module):
+    """Dreamer V3's return scale max(1, S), S an EMA of the 95th minus the 5th percentile of the lambda-returns."""
+
+    def __init__(self, decay):
+        super().__init__()
+        self.decay = decay
+        self.register_buffer("range", torch.zeros(()))
+
+    def forward(self, returns):
+        with torch.no_grad():
+            low, high = torch.quantile(returns.detach().flatten(), torch.tensor([0.05, 0.95], device=returns.device))
+            self.range.lerp_(high - low, 1 - self.decay)
+        return self.range.clamp(min=1.0)
+
+
+@contextlib.contextmanager
+def freeze(*modules):
+    """Inside, the parameters of `modules` are constants: what is built there gives them no gradient."""
+    params = [p for m in modules for p in m.parameters()]
+    flags = [p.requires_grad for p in params]
+    for p in params:
+        p.requires_grad_(False)
+    try:
+        yield
+    finally:
+        for p, flag in zip(params, flags):
+            p.requires_grad_(flag)
+
+
+@torch.no_grad()
+def ema_update(slow, fast, rate):
+    """slow <- (1 - rate) slow + rate fast, parameter by parameter (the slow critic, Dreamer V3)."""
+    for p_slow, p_fast in zip(slow.parameters(), fast.parameters()):
+        p_slow.lerp_(p_fast, rate)
+
+
+def sample_starts(post, n, generator=None):
+    """n distinct random posterior states of a batch as imagination starts (all of them if n >= B * T):
+    post dict of (B, T, .) -> dict of (n, .), detached."""
+    flat = {k: v.detach().flatten(0, 1) for k, v in post.items()}
+    index = torch.randperm(len(flat["deter"]), generator=generator)[:n].to(flat["deter"].device)
+    return {k: v[index] for k, v in flat.items()}
+
+
+def sample_goals(post_feat, encoded_goal, n, mix, generator=None):
+    """Goals for pretraining, the choice DESIGN.md leaves open (ours): each of the n goals is a random D_body frame,
+    taken with probability `mix` as the goal encoder's g = q(s | p_t) means and otherwise as the world model's
+    posterior feat. Posterior states are what the distance network is trained on, so -d(s, g) is meaningful
+    there; goal-encoder outputs are what phase 2 feeds the frozen policy (GIIL-ZS: g = encode(p_T)), so the policy
+    must have learnt to reach them. post_feat, encoded_goal (M, F) -> (n, F), detached."""
+    M = len(post_feat)
+    assert encoded_goal.shape == post_feat.shape and post_feat.dim() == 2, (post_feat.shape, encoded_goal.shape)
+    index = torch.randint(M, (n,), generator=generator).to(post_feat.device)
+    from_encoder = (torch.rand(n, 1, generator=generator) < mix).to(post_feat.device)
+    return torch.where(from_encoder, encoded_goal[index], post_feat[index]).detach()
+
+
+def rollout(world_model, actor, start, goal, horizon):
+    """Imagine `horizon` steps from start states (dict of (N, .), detached here) with pi(a | s, g)
+    -> feat (N, H + 1, F) (index 0 = start), action (N, H, A), log_prob (N, H) of a_k at s_k."""
+    start = {k: v.detach() for k, v in start.items()}
+    log_probs = []
+
+    def policy_fn(feat):
+        action, log_prob = actor(feat.detach(), goal)  # the actor reads sg(feat), as Dreamer V1/V2
+        log_probs.append(log_prob)
+        return action
+
+    states, actions = world_model.imagine(start, policy_fn, horizon)
+    return world_model.feat(states), actions, torch.stack(log_probs, 1)
+
+
+def goal_reward(dist_net, feat, goal):
+    """r^goal(s_{k+1}, g) = -d(s_{k+1}, g) on arrival (Sec. 4): feat (N, H + 1, F), goal (N, F) -> (N, H)."""
+    goal = goal[:, None].expand(-1, feat.shape[1] - 1, -1)
+    return -dist_net(feat[:, 1:], goal)
+
+
+def lambda_return(reward, value, gamma, lambda_):
+    """TD(lambda) targets: reward (N, H) with reward[:, k] = r_{k+1} (on arriving at s_{k+1}), value (N, H + 1)
+    with value[:, k] = v_k -> G (N, H), G_k = r_{k+1} + gamma [(1 - lambda) v_{k+1} + lambda G_{k+1}], G_H = v_H."""
+    N, H = reward.shape
+    assert value.shape == (N, H + 1), (reward.shape, value.shape)
+    G, returns = value[:, H], []
+    for k in reversed(range(H)):
+        G = reward[:, k] + gamma * ((1 - lambda_) * value[:, k + 1] + lambda_ * G)
+        returns.append(G)
+    return torch.stack(returns[::-1], 1)
+
+
+def actor_loss(returns, log_prob, return_norm, entropy_scale):  # Eq. 4
+    """-E[V_lambda(s_k, g)] over the imagined steps, the lambda-returns (N, H) standing for Eq. 4's values as in
+    Dreamer V1, scaled by 1 / max(1, S) (Dreamer V3), minus an entropy bonus estimated by -log pi (N, H)."""
+    scale = return_norm(returns)
+    objective = (returns / scale).mean()
+    entropy = -log_prob.mean()
+    loss = -objective - entropy_scale * entropy
+    return loss, {"actor_loss": loss.item(), "return": returns.mean().item(), "return_scale": scale.item(), "entropy": entropy.item()}
+
+
+def critic_loss(critic, feat, goal, returns):  # Eq. 4: V_eta trained with TD(lambda) targets
+    """V(s_k, g) for k < H regressed to sg(G_k) (Dreamer V1: a unit Gaussian, 0.5 squared error):
+    feat (N, H + 1, F), goal (N, G) or None, returns (N, H) -> (loss, metrics)."""
+    goal = None if goal is None else goal.detach()
+    value = critic(feat[:, :-1].detach(), goal)  # (N, H)
+    loss = 0.5 * ((value - returns.detach()) ** 2).mean()
+    return loss, {"critic_loss": loss.item(), "value": value.mean().item()}
+
+
+def policy_losses(world_model, dist_net, actor, critic, slow_critic, return_norm, start, goal, cfg):  # Eq. 4
+    """One update of L_MG (module docstring): start dict of (N, .), goal (N, F) -> actor loss, critic loss, metrics.
+    Call ema_update(slow_critic, critic, cfg.slow_critic_rate) after the critic's optimiser step."""
+    with freeze(world_model, dist_net, slow_critic):
+        feat, _, log_prob = rollout(world_model, actor, start, goal, cfg.horizon)
+        reward = goal_reward(dist_net, feat, goal)  # (N, H)
+        value = slow_critic(feat, goal)  # (N, H + 1): differentiable in feat, so -G reaches the actions
+        returns = lambda_return(reward, value, cfg.gamma, cfg.lambda_)  # (N, H)
+    a_loss, a_metrics = actor_loss(returns, log_prob, return_norm, cfg.entropy)
+    c_loss, c_metrics = critic_loss(critic, feat, goal, returns)
+    return a_loss, c_loss, {**a_metrics, **c_metrics, "reward": reward.mean().item()}
+
+
+def make_critics(cfg, feat_dim, goal_dim):
+    """The critic and its slow copy (a constant: requires_grad False, moved only by ema_update)."""
+    critic = Critic(cfg, feat_dim, goal_dim)
+    return critic, copy.deepcopy(critic).requires_grad_(False)
+
+
+def bench_update(preset="cpu", obs_dim=24, action_dim=6):
+    """One actor-critic update (rollout from cfg.starts posterior states, both losses, backward, clip, Adam steps, EMA)
+    at a preset's sizes, as a zero-argument function for bench.py to time, and what it measures."""
+    wm_cfg, cfg = WorldModelConfig(**WM_PRESETS[preset]), ActorCriticConfig(**PRESETS[preset])
+    obs_shape = obs_dim if wm_cfg.obs == "state" else (64, 64, 3)
+    world_model = WorldModel(wm_cfg, obs_shape, action_dim)
+    dist_net = DistanceNet(DistanceConfig(**DIST_PRESETS[preset]), world_model.feat_dim)
+    actor = Actor(cfg, world_model.feat_dim, world_model.feat_dim, action_dim)
+    critic, slow_critic = make_critics(cfg, world_model.feat_dim, world_model.feat_dim)
+    return_norm = ReturnNorm(cfg.return_norm_decay)
+    batch = random_batch(wm_cfg.obs, obs_shape, action_dim, wm_cfg.batch, wm_cfg.seq_len)
+    with torch.no_grad():
+        post, _ = world_model.observe(batch[wm_cfg.obs], batch["action"], batch["is_first"])
+    post_feat = world_model.feat(post).flatten(0, 1)  # (B * T, F)
+    opts = [torch.optim.Adam(actor.parameters(), lr=cfg.actor_lr), torch.optim.Adam(critic.parameters(), lr=cfg.critic_lr)]
+
+    def update():
+        start = sample_starts(post, cfg.starts)
+        goal = sample_goals(post_feat, post_feat, len(start["deter"]), cfg.goal_mix)
+        a_loss, c_loss, _ = policy_losses(world_model, dist_net, actor, critic, slow_critic, return_norm, start, goal, cfg)
+        for opt in opts:
+            opt.zero_grad(set_to_none=True)
+        (a_loss + c_loss).backward()  # disjoint: the actor loss reaches only the actor, the critic loss only the critic
+        for opt in opts:
+            nn.utils.clip_grad_norm_(opt.param_groups[0]["params"], cfg.grad_clip)
+            opt.step()
+        ema_update(slow_critic, critic, cfg.slow_critic_rate)
+
+    return update, f"actor-critic update, {preset} preset, {min(cfg.starts, len(post_feat))} starts x {cfg.horizon} imagined steps"

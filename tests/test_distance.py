@@ -1,0 +1,72 @@
+"""distance.py: Eq. 7 on a hand-made batch against hand-computed values, pair sampling, and a short fit."""
+import pytest
+import torch
+
+from distance import DistanceConfig, DistanceNet, distance_loss, sample_pairs
+
+torch.set_num_threads(1)
+
+
+def stub_dist_net(feat_i, feat_j):
+    """A known 'network': d(s_i, s_j) = s_j[0] - s_i[0]."""
+    return feat_j[..., 0] - feat_i[..., 0]
+
+
+def test_eq7_on_a_hand_made_batch():
+    feat = torch.tensor([[[0.0], [0.1], [0.5]], [[0.2], [0.3], [0.9]]])  # (B=2, T=3, F=1)
+    pairs = {
+        "pos": (torch.tensor([0, 1]), torch.tensor([0, 1]), torch.tensor([2, 2])),  # (b, i, j): (0, 0, 2), (1, 1, 2)
+        "neg": (torch.tensor([0, 1]), torch.tensor([0, 0]), torch.tensor([1, 0]), torch.tensor([2, 1])),  # (0,0)-(1,2), (1,0)-(0,1)
+    }
+    # by hand, T = 3: d = 0.5 vs (2 - 0) / 3 and d = 0.6 vs (2 - 1) / 3; negatives d = 0.9 and d = -0.1 vs 1
+    regression = ((0.5 - 2 / 3) ** 2 + (0.6 - 1 / 3) ** 2) / 2
+    contrastive = ((0.9 - 1) ** 2 + (-0.1 - 1) ** 2) / 2
+    loss, metrics = distance_loss(stub_dist_net, feat, pairs, horizon_T=3)
+    assert loss.item() == pytest.approx(regression + contrastive, abs=1e-6)
+    assert metrics["dist_regression"] == pytest.approx(regression, abs=1e-6)
+    assert metrics["dist_contrastive"] == pytest.approx(contrastive, abs=1e-6)
+    weighted, _ = distance_loss(stub_dist_net, feat, pairs, horizon_T=3, contrastive_weight=0.25)
+    assert weighted.item() == pytest.approx(regression + 0.25 * contrastive, abs=1e-6)
+
+
+def test_pairs_stay_inside_a_trajectory_and_negatives_cross_episodes():
+    B, T = 4, 10
+    episode = torch.tensor([7, 7, 8, 9])  # rows 0 and 1: two segments of one episode
+    is_first = torch.zeros(B, T, dtype=torch.bool)
+    is_first[:, 0] = True
+    is_first[2, 5] = True  # row 2 crosses into a new episode at t = 5
+    pairs = sample_pairs(episode, is_first, 4000, torch.Generator().manual_seed(0))
+    b, i, j = pairs["pos"]
+    assert len(b) > 1000 and (i < j).all()
+    crosses = (b == 2) & (i < 5) & (j >= 5)
+    assert not crosses.any()
+    assert set((j - i).tolist()) == set(range(1, T))  # every gap appears
+    b1, t1, b2, t2 = pairs["neg"]
+    assert len(b1) > 1000 and (episode[b1] != episode[b2]).all()
+    assert not ((b1 == 0) & (b2 == 1)).any()
+
+
+def test_distance_net_learns_temporal_order():
+    """Features that drift along a trajectory: after a short fit, later states are predicted further away."""
+    torch.manual_seed(0)
+    cfg = DistanceConfig(units=64, layers=2)
+    B, T, F = 8, 10, 4
+    dist_net = DistanceNet(cfg, F)
+    opt = torch.optim.Adam(dist_net.parameters(), lr=3e-3)
+    is_first = torch.zeros(B, T, dtype=torch.bool)
+    is_first[:, 0] = True
+
+    def batch():
+        start = torch.randn(B, 1, F)
+        return start + torch.linspace(0, 1, T)[None, :, None] * torch.ones(F)  # (B, T, F)
+
+    for _ in range(300):
+        loss, _ = distance_loss(dist_net, batch(), sample_pairs(torch.arange(B), is_first, 256), T, cfg.contrastive_weight)
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+    feat = batch()
+    with torch.no_grad():
+        d = dist_net(feat[:, :1].expand(-1, T, -1), feat)  # (B, T): from step 0 to every step
+    assert d.shape == (B, T)
+    assert (d[:, -1] - d[:, 1]).mean() > 0.3  # (9 - 1) / 10 = 0.8 by Eq. 6

@@ -1,0 +1,141 @@
+"""policy.py: TD(lambda) against the n-step definition, the tanh-Gaussian log-probability against torch.distributions,
+no gradient from the actor loss into the world model, goal sampling, and phase 2's gradient to the goal only."""
+import pytest
+import torch
+from torch.distributions import Normal, TanhTransform, TransformedDistribution
+
+import policy as P
+import world_model as W
+from distance import PRESETS as DIST_PRESETS, DistanceConfig, DistanceNet
+
+torch.set_num_threads(1)
+
+
+def plain_lambda_return(reward, value, gamma, lambda_):
+    """The TD(lambda) return by its definition, in plain Python: a lambda-weighted mix of n-step returns
+    G^(n)_k = r_{k+1} + ... + gamma^(n-1) r_{k+n} + gamma^n v_{k+n}, the last one carrying the remaining weight."""
+    H = len(reward)
+    out = []
+    for k in range(H):
+        n_max = H - k
+        n_step = [sum(gamma**m * reward[k + m] for m in range(n)) + gamma**n * value[k + n] for n in range(1, n_max + 1)]
+        out.append(sum((1 - lambda_) * lambda_ ** (n - 1) * n_step[n - 1] for n in range(1, n_max)) + lambda_ ** (n_max - 1) * n_step[-1])
+    return out
+
+
+def test_lambda_return_matches_the_plain_definition():
+    g = torch.Generator().manual_seed(0)
+    reward, value = torch.randn(3, 6, generator=g, dtype=torch.float64), torch.randn(3, 7, generator=g, dtype=torch.float64)
+    returns = P.lambda_return(reward, value, 0.9, 0.8)
+    assert returns.shape == (3, 6)
+    for n in range(3):
+        assert returns[n].tolist() == pytest.approx(plain_lambda_return(reward[n].tolist(), value[n].tolist(), 0.9, 0.8), abs=1e-10)
+
+
+def test_tanh_gaussian_log_prob_matches_torch_distributions():
+    torch.manual_seed(0)
+    cfg = P.ActorCriticConfig(**P.PRESETS["smoke"])
+    actor = P.Actor(cfg, 6, 3, 2).double()
+    feat, goal = torch.randn(50, 6, dtype=torch.float64), torch.randn(50, 3, dtype=torch.float64)
+    action, log_prob = actor(feat, goal)
+    mean, std = actor.distribution(feat, goal)
+    expected = TransformedDistribution(Normal(mean, std), [TanhTransform()]).log_prob(action).sum(-1)
+    assert action.shape == (50, 2) and action.abs().max() <= 1
+    assert torch.allclose(log_prob, expected, atol=1e-6)
+
+
+def make_agents(goal_dim=None):
+    cfg = P.ActorCriticConfig(**P.PRESETS["smoke"])
+    world_model = W.WorldModel(W.WorldModelConfig(**W.PRESETS["smoke"]), 5, 2)
+    F = world_model.feat_dim
+    dist_net = DistanceNet(DistanceConfig(**DIST_PRESETS["smoke"]), F)
+    actor = P.Actor(cfg, F, F, 2)
+    critic, slow_critic = P.make_critics(cfg, F, F if goal_dim is None else goal_dim)
+    return cfg, world_model, dist_net, actor, critic, slow_critic
+
+
+def test_actor_loss_passes_no_gradient_to_the_world_model():
+    torch.manual_seed(0)
+    cfg, world_model, dist_net, actor, critic, slow_critic = make_agents()
+    batch = W.random_batch("state", 5, 2, 4, 6)
+    _, _, post = world_model.loss(batch)  # post carries the world model's graph: the start states must cut it
+    start = P.sample_starts(post, 16)
+    post_feat = world_model.feat(post).flatten(0, 1)
+    goal = P.sample_goals(post_feat, post_feat.flip(0), 16, cfg.goal_mix)
+    a_loss, c_loss, metrics = P.policy_losses(world_model, dist_net, actor, critic, slow_critic, P.ReturnNorm(0.99), start, goal, cfg)
+    assert {"actor_loss", "critic_loss", "reward", "return", "value", "entropy"} <= metrics.keys()
+    a_loss.backward()
+    for module in (world_model, dist_net, critic, slow_critic):
+        assert all(p.grad is None for p in module.parameters()), type(module).__name__
+    assert all(p.grad is not None and p.grad.abs().sum() > 0 for p in actor.parameters())
+    assert all(p.requires_grad for p in world_model.parameters()) and all(p.requires_grad for p in dist_net.parameters())
+    c_loss.backward()
+    assert all(p.grad is not None and p.grad.abs().sum() > 0 for p in critic.parameters())
+    assert all(p.grad is None for p in world_model.parameters())
+
+
+def test_slow_critic_follows_by_ema():
+    cfg, *_, critic, slow_critic = make_agents()
+    assert all(not p.requires_grad for p in slow_critic.parameters())
+    with torch.no_grad():
+        for p in critic.parameters():
+            p.add_(1.0)  # the critic moved by 1 everywhere
+    before = [p.clone() for p in slow_critic.parameters()]
+    P.ema_update(slow_critic, critic, cfg.slow_critic_rate)
+    assert all(torch.allclose(p, b + cfg.slow_critic_rate) for p, b in zip(slow_critic.parameters(), before))
+
+
+def test_rollout_shapes_and_alignment():
+    torch.manual_seed(0)
+    cfg, world_model, dist_net, actor, *_ = make_agents()
+    N, H, F = 5, 4, world_model.feat_dim
+    start = world_model.initial_state(N)
+    goal = torch.randn(N, F)
+    feat, action, log_prob = P.rollout(world_model, actor, start, goal, H)
+    assert feat.shape == (N, H + 1, F) and action.shape == (N, H, 2) and log_prob.shape == (N, H)
+    assert torch.equal(feat[:, 0], world_model.feat(start))
+    reward = P.goal_reward(dist_net, feat, goal)
+    assert reward.shape == (N, H)
+    assert torch.allclose(reward[:, 0], -dist_net(feat[:, 1], goal))  # r_1 is earned on arriving at s_1
+
+
+def test_sample_goals_mixes_posterior_states_and_encoder_goals():
+    post_feat, encoded = torch.zeros(10, 3), torch.ones(10, 3)
+    g = torch.Generator().manual_seed(0)
+    assert (P.sample_goals(post_feat, encoded, 200, 0.0, g) == 0).all()
+    assert (P.sample_goals(post_feat, encoded, 200, 1.0, g) == 1).all()
+    share = P.sample_goals(post_feat, encoded, 2000, 0.5, g)[:, 0].mean().item()
+    assert 0.45 < share < 0.55
+
+
+def test_sample_starts_are_distinct_detached_posterior_states():
+    post = {"deter": torch.arange(12.0, requires_grad=True).reshape(3, 4, 1) * 1, "stoch": torch.zeros(3, 4, 2)}
+    start = P.sample_starts(post, 5, torch.Generator().manual_seed(0))
+    assert start["deter"].shape == (5, 1) and start["stoch"].shape == (5, 2) and not start["deter"].requires_grad
+    assert len(set(start["deter"].flatten().tolist())) == 5
+    assert P.sample_starts(post, 100)["deter"].shape == (12, 1)
+
+
+def test_phase2_reuse_sends_gradient_to_the_goal_only():
+    """Eq. 5's pattern: frozen world model and actor, a critic V(s) without goal, a reward of the states only."""
+    torch.manual_seed(0)
+    cfg, world_model, _, actor, critic, _ = make_agents(goal_dim=0)
+    N, F = 6, world_model.feat_dim
+    goal = torch.randn(1, F, requires_grad=True)  # one goal vector shared by every start
+    with P.freeze(world_model, actor, critic):
+        feat, _, log_prob = P.rollout(world_model, actor, world_model.initial_state(N), goal, cfg.horizon)
+        reward = -feat[:, 1:].pow(2).sum(-1)  # any differentiable reward of the states (the OT reward in imitate.py)
+        returns = P.lambda_return(reward, critic(feat, None), cfg.gamma, cfg.lambda_)
+    loss, _ = P.actor_loss(returns, log_prob, P.ReturnNorm(cfg.return_norm_decay), cfg.entropy)
+    loss.backward()
+    assert goal.grad is not None and goal.grad.abs().sum() > 0
+    for module in (world_model, actor, critic):
+        assert all(p.grad is None for p in module.parameters())
+    with pytest.raises(AssertionError):
+        critic(feat, goal)  # goal_dim = 0: V_ot(s) takes no goal
+
+
+def test_return_norm_scale():
+    norm = P.ReturnNorm(0.0)  # decay 0: the scale is the current batch's 5-95 percentile range
+    assert norm(torch.linspace(0, 0.5, 101)).item() == 1.0  # ranges below 1 are not scaled up
+    assert norm(torch.linspace(0, 10, 101)).item() == pytest.approx(9.0, abs=1e-4)
