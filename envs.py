@@ -25,7 +25,9 @@ Rendering bypasses dm_control's renderer: one `mujoco.Renderer` per env with sha
 and the skybox turned off (they are most of the cost of a 64x64 frame on a software GL).
 """
 import argparse
+import atexit
 import os
+import weakref
 
 os.environ.setdefault("MUJOCO_GL", "egl")  # headless rendering on CPU (Mesa); OSMesa is not installed
 
@@ -120,6 +122,19 @@ def model_xml(body):
     return walker if body == "walker" else _stickman_xml(walker)
 
 
+# Renderers still open at exit are closed before MuJoCo terminates the EGL display (else each prints an
+# EGLError at exit): mujoco registers that at its first context, so ours is registered after it (atexit is LIFO).
+_RENDERERS = weakref.WeakSet()
+
+
+def _new_renderer(model, size):
+    renderer = mujoco.Renderer(model, size, size)
+    if not _RENDERERS:
+        atexit.register(lambda: [r.close() for r in list(_RENDERERS)])
+    _RENDERERS.add(renderer)
+    return renderer
+
+
 def _check_name(kind, value, valid):
     if value not in valid:
         raise ValueError(f"unknown {kind} {value!r}: valid {kind} names are {', '.join(valid)}")
@@ -201,7 +216,7 @@ class Env:
         _check_name("view", view, VIEWS)
         size = size or self.size
         if self._renderer is None or self._renderer.height != size:
-            self._renderer = mujoco.Renderer(self.physics.model.ptr, size, size)
+            self._renderer = _new_renderer(self.physics.model.ptr, size)
             for flag in (mujoco.mjtRndFlag.mjRND_SHADOW, mujoco.mjtRndFlag.mjRND_REFLECTION, mujoco.mjtRndFlag.mjRND_SKYBOX):
                 self._renderer.scene.flags[flag] = 0
         self._renderer.update_scene(self.physics.data.ptr, camera=view)

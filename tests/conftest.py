@@ -1,5 +1,44 @@
 import os
 import sys
 
+import pytest
+
 os.environ.setdefault("MUJOCO_GL", "egl")
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+
+
+@pytest.fixture(scope="session")
+def smoke_data(tmp_path_factory):
+    """D_body of the walker and D_demo, smoke preset (a few 20-step episodes), in a temporary data folder."""
+    import collect
+
+    root = str(tmp_path_factory.mktemp("data"))
+    cfg = collect.CollectConfig(**collect.PRESETS["smoke"])
+    collect.collect_body("walker", cfg, root, workers=2)
+    collect.collect_demos(cfg, root, workers=2)
+    return root
+
+
+@pytest.fixture(scope="session")
+def smoke_run(smoke_data, tmp_path_factory):
+    """A phase-1 run of the walker with the smoke preset; returns its folder."""
+    import train
+
+    cfgs = train.resolve_configs(train_args(data=smoke_data), "smoke", train.COMPONENTS)
+    run_dir = str(tmp_path_factory.mktemp("runs") / "walker_smoke")
+    train.train(cfgs, run_dir, resume=False)
+    return run_dir
+
+
+def train_args(**given):
+    """An argparse-like namespace for train.resolve_configs: 'component.field' -> value (None = not given)."""
+    import argparse
+    import dataclasses
+
+    import train
+
+    ns = argparse.Namespace()
+    for name, (cls, _, _) in train.COMPONENTS.items():
+        for field in dataclasses.fields(cls):
+            setattr(ns, f"{name}.{field.name}", given.get(field.name) if name == "train" else given.get(f"{name}.{field.name}"))
+    return ns

@@ -1,0 +1,275 @@
+"""Sec. 2 and 5: the embodiment dataset D_body and the demonstration dataset D_demo, one .npz per episode.
+
+D_body (data/<body>/), unlabelled experience of the agent's own body, the paper's recipe at our scale:
+  explore_NNNN.npz  exploration: random actions held for a random 1-10 agent steps each (correlated
+                    noise reaches more varied states than i.i.d. actions; the paper used Plan2Explore)
+  <task>_NNNN.npz   for task in stand/walk/run: a snapshot drawn uniformly from that expert's learning
+                    history (experts/history) acting with Gaussian action noise (the paper replays the
+                    buffers of Dreamer agents trained on these tasks). Jump is held out of D_body.
+  Proportion exploration : task episodes = 2 : 3 (paper: ~2000 : 3 x 1000).
+D_demo (data/demos/<body>_<task>_<view>/NN.npz): the final expert of each (body, task), deterministic;
+  each episode is simulated once and rendered from both cameras, so the side and diagonal folders show
+  the same motion.
+
+Episode keys, index t = 0..L (Dreamer alignment, see world_model.py):
+  state   (L+1, obs_dim) float32  proprioceptive observation o_t
+  pixels  (L+1, 64, 64, 3) uint8  the frame of o_t from `view`
+  action  (L+1, A) float32        a_{t-1}, the action that led into o_t (zeros at t = 0)
+  reward  (L+1,) float32          r_t, received on arriving in o_t (0 at t = 0); sum = `return`
+  is_first (L+1,) bool            True at t = 0
+  p       (L+1, D) float32        video features p_t of frames t-k+1..t (video_encoder.py)
+  encoder, body, task, view, source (str), return (float): metadata; `task` is kept for auditing only,
+  phase 1 never reads it (D_body is unlabelled).
+Features are a second pass over stored pixels (`--features`), so a new encoder needs no re-simulation.
+"""
+import argparse
+import multiprocessing
+import os
+import zipfile
+from dataclasses import dataclass
+
+import numpy as np
+from tqdm import tqdm
+
+import envs
+
+BODY_TASKS = ("stand", "walk", "run")  # the tasks whose experts' histories enter D_body; jump is held out
+KEYS = {"state": np.float32, "pixels": np.uint8, "action": np.float32, "reward": np.float32, "is_first": np.bool_, "p": np.float32}
+META = ("encoder", "body", "task", "view", "source", "return")
+
+
+@dataclass
+class CollectConfig:
+    explore_episodes: int = 80  # D_body exploration episodes (paper ~2000)
+    task_episodes: int = 40  # D_body episodes per task in BODY_TASKS (paper 1000); 80 : 120 = 2 : 3
+    demo_episodes: int = 10  # per (body, task, view): paper Sec. 5
+    episode_steps: int = envs.EPISODE_STEPS  # agent steps per episode
+    action_noise: float = 0.3  # std of the Gaussian noise on snapshot actions in D_body
+    seed: int = 0
+
+
+PRESETS = {
+    "smoke": dict(explore_episodes=2, task_episodes=1, demo_episodes=2, episode_steps=20),
+    "cpu": dict(),  # the defaults: ~200 episodes, collected in minutes on 2 cores
+    "paper": dict(explore_episodes=2000, task_episodes=1000),
+}
+
+
+def episode_jobs(body, cfg, data):
+    """D_body episodes as (path, job) pairs; the seed of each episode is fixed by its name."""
+    import experts
+
+    jobs = []
+    for k in range(cfg.explore_episodes):
+        jobs.append(dict(kind="explore", body=body, task="stand", index=k, snapshot=None))
+    for t, task in enumerate(BODY_TASKS):
+        snapshots = experts.history_steps(body, task)
+        if not snapshots:
+            raise FileNotFoundError(f"no learning history for the {body} {task} expert in experts/history: train it with `python experts.py --body {body}`")
+        rng = np.random.default_rng([cfg.seed, 1 + t])
+        for k in range(cfg.task_episodes):
+            jobs.append(dict(kind=task, body=body, task=task, index=k, snapshot=int(rng.choice(snapshots))))
+    out = []
+    for job in jobs:
+        job.update(steps=cfg.episode_steps, noise=cfg.action_noise, seed=[cfg.seed, envs.BODIES.index(body), len(out)], views=("side",))
+        out.append(([os.path.join(data, body, f"{job['kind']}_{job['index']:04d}.npz")], job))
+    return out
+
+
+def demo_jobs(cfg, data):
+    """D_demo: one simulation per (body, task, index), written to both views' folders."""
+    import experts
+
+    out = []
+    for body in envs.BODIES:
+        for task in envs.TASKS:
+            if not os.path.exists(experts.expert_path(body, task)):
+                raise FileNotFoundError(f"no final {body} {task} expert at {experts.expert_path(body, task)}: train it with `python experts.py --body {body}`")
+            for k in range(cfg.demo_episodes):
+                paths = [os.path.join(data, "demos", f"{body}_{task}_{view}", f"{k:02d}.npz") for view in envs.VIEWS]
+                job = dict(kind="demo", body=body, task=task, index=k, snapshot=None, steps=cfg.episode_steps, noise=0.0,
+                           seed=[cfg.seed, 7, envs.BODIES.index(body), envs.TASKS.index(task), k], views=envs.VIEWS)
+                out.append((paths, job))
+    return out
+
+
+def simulate(job):
+    """Run one episode; returns the keys of every view's file (without features)."""
+    import torch
+
+    import experts
+
+    torch.set_num_threads(1)
+    rng = np.random.default_rng(job["seed"])
+    env = envs.make_env(job["body"], job["task"], seed=int(rng.integers(2**31)))
+    obs, _ = env.reset()
+    actor = None
+    if job["kind"] == "demo":
+        actor = experts.load_expert(job["body"], job["task"])
+    elif job["kind"] != "explore":
+        actor = experts.load_expert(job["body"], job["task"], job["snapshot"])
+    states, actions, rewards = [obs], [np.zeros(env.action_dim, np.float32)], [0.0]
+    frames = {view: [env.render(view)] for view in job["views"]}
+    held, hold = None, 0
+    for _ in range(job["steps"]):
+        if actor is None:  # exploration: a uniform random action held for 1-10 steps
+            if hold == 0:
+                held, hold = rng.uniform(-1, 1, env.action_dim), int(rng.integers(1, 11))
+            action, hold = held, hold - 1
+        else:
+            with torch.no_grad():
+                mean = actor(torch.as_tensor(obs)[None, None], deterministic=True)[0][0, 0].double().numpy()
+            action = np.clip(mean + job["noise"] * rng.standard_normal(env.action_dim), -1, 1)
+        obs, reward, _, _, _ = env.step(action)
+        states.append(obs)
+        actions.append(np.asarray(action, np.float32))
+        rewards.append(reward)
+        for view in job["views"]:
+            frames[view].append(env.render(view))
+    env.close()
+    source = "explore" if job["kind"] == "explore" else f"{job['task']}@{job['snapshot'] or 'final'}"
+    common = dict(
+        state=np.array(states, np.float32), action=np.array(actions), reward=np.array(rewards, np.float32),
+        is_first=np.arange(len(states)) == 0, body=job["body"], task="explore" if job["kind"] == "explore" else job["task"],
+        source=source, **{"return": float(np.sum(rewards))},
+    )
+    return [dict(common, pixels=np.array(frames[view]), view=view) for view in job["views"]]
+
+
+def save_episode(path, episode):
+    """Atomic write: a temporary name, then rename (a killed run leaves no half-written episode)."""
+    os.makedirs(os.path.dirname(path), exist_ok=True)
+    tmp = path[:-4] + ".tmp.npz"
+    np.savez_compressed(tmp, **episode)
+    os.replace(tmp, path)
+
+
+def load_episode(path, keys=tuple(KEYS)):
+    """Read and validate one episode: the requested keys (arrays) plus metadata. One-line ValueError otherwise."""
+    try:
+        with np.load(path) as f:
+            missing = [k for k in tuple(keys) + META if k not in f.files]
+            if missing:
+                raise ValueError(f"{path}: missing key(s) {', '.join(missing)}; recollect it (delete the file and rerun collect.py)")
+            episode = {k: f[k] for k in tuple(keys) + META}
+    except (zipfile.BadZipFile, OSError, EOFError) as error:
+        raise ValueError(f"{path}: not a readable .npz episode ({error}); delete it and rerun collect.py") from None
+    length = len(episode["is_first"]) if "is_first" in episode else None
+    for key in keys:
+        value = episode[key]
+        if value.dtype != KEYS[key]:
+            raise ValueError(f"{path}: key {key!r} has dtype {value.dtype}, expected {np.dtype(KEYS[key])}")
+        length = length or len(value)
+        if len(value) != length or len(value) < 2:
+            raise ValueError(f"{path}: key {key!r} has {len(value)} steps, expected {length} (>= 2) like the other keys")
+        if key == "pixels" and value.shape[1:] != (64, 64, 3):
+            raise ValueError(f"{path}: key 'pixels' has shape {value.shape}, expected (T, 64, 64, 3)")
+        if key == "p" and (value.ndim != 2 or not np.all(np.isfinite(value))):
+            raise ValueError(f"{path}: key 'p' must be a finite (T, D) array, got shape {value.shape}")
+    for key in META[:-1]:
+        episode[key] = str(episode[key])
+    episode["return"] = float(episode["return"])
+    return episode
+
+
+def load_folder(folder, keys=tuple(KEYS), encoder=None):
+    """All episodes of a folder, sorted by name; features from two encoders are an error."""
+    from video_encoder import check_same_encoder
+
+    names = sorted(n for n in os.listdir(folder) if n.endswith(".npz") and not n.endswith(".tmp.npz")) if os.path.isdir(folder) else []
+    if not names:
+        raise FileNotFoundError(f"no episodes in {folder}: run `python collect.py` (see --help)")
+    episodes = [load_episode(os.path.join(folder, n), keys) for n in names]
+    for name, episode in zip(names, episodes):
+        check_same_encoder(encoder or episodes[0]["encoder"], episode["encoder"], os.path.join(folder, name))
+    return episodes
+
+
+def _worker(item):
+    """Simulate, compute features, write; returns the paths written (a pool worker, one episode)."""
+    paths, job, encoder_spec = item
+    from video_encoder import load_encoder
+
+    encoder = _worker_encoder(load_encoder, encoder_spec)
+    for path, episode in zip(paths, simulate(job)):
+        save_episode(path, dict(episode, p=encoder(episode["pixels"]), encoder=encoder.name))
+    return paths
+
+
+_ENCODERS = {}
+
+
+def _worker_encoder(load_encoder, spec):
+    """One encoder per worker process, loaded on first use."""
+    if spec not in _ENCODERS:
+        _ENCODERS[spec] = load_encoder(spec)
+    return _ENCODERS[spec]
+
+
+def run_jobs(jobs, encoder_spec, workers, desc):
+    """Runs the jobs whose files are not all on disk yet (resume), in `workers` processes."""
+    todo = [(paths, job, encoder_spec) for paths, job in jobs if not all(os.path.exists(p) for p in paths)]
+    print(f"{desc}: {len(jobs) - len(todo)} of {len(jobs)} episodes already on disk")
+    if not todo:
+        return
+    if workers <= 1:
+        results = map(_worker, todo)
+    else:  # spawn: no EGL context or torch thread pool is inherited from the parent
+        pool = multiprocessing.get_context("spawn").Pool(workers)
+        results = pool.imap_unordered(_worker, todo)
+    for _ in tqdm(results, total=len(todo), desc=desc):
+        pass
+    if workers > 1:
+        pool.close()
+        pool.join()
+
+
+def recompute_features(data, encoder_spec):
+    """Second pass: rewrite `p` of every episode under `data` whose encoder differs from encoder_spec's."""
+    from video_encoder import load_encoder
+
+    encoder = load_encoder(encoder_spec)
+    paths = sorted(os.path.join(d, n) for d, _, names in os.walk(data) for n in names if n.endswith(".npz") and not n.endswith(".tmp.npz"))
+    for path in tqdm(paths, desc=f"features ({encoder.name})"):
+        with np.load(path) as f:
+            episode = {k: f[k] for k in f.files}
+        if str(episode.get("encoder")) != encoder.name:
+            save_episode(path, dict(episode, p=encoder(episode["pixels"]), encoder=encoder.name))
+    print(f"features of {len(paths)} episodes under {data} are from {encoder.name}")
+
+
+def collect_body(body, cfg, data="data", workers=2, encoder="default"):
+    """Writes D_body of one body (skips what exists); returns its folder."""
+    envs._check_name("body", body, envs.BODIES)
+    run_jobs(episode_jobs(body, cfg, data), encoder, workers, f"D_body {body}")
+    return os.path.join(data, body)
+
+
+def collect_demos(cfg, data="data", workers=2, encoder="default"):
+    run_jobs(demo_jobs(cfg, data), encoder, workers, "D_demo")
+    return os.path.join(data, "demos")
+
+
+def main():
+    parser = argparse.ArgumentParser(description="Write D_body (--env BODY) and/or D_demo (--demos); recompute features (--features).")
+    parser.add_argument("--env", choices=envs.BODIES, help="collect D_body for this body")
+    parser.add_argument("--demos", action="store_true", help="collect D_demo: every body x task x view")
+    parser.add_argument("--features", action="store_true", help="recompute video features of everything under --data")
+    parser.add_argument("--preset", choices=PRESETS, default="cpu")
+    parser.add_argument("--data", default="data")
+    parser.add_argument("--workers", type=int, default=os.cpu_count())
+    parser.add_argument("--encoder", default="default", help="'default' or a TorchScript video model file (video_encoder.py)")
+    args = parser.parse_args()
+    cfg = CollectConfig(**PRESETS[args.preset])
+    if not (args.env or args.demos or args.features):
+        parser.error("nothing to do: pass --env BODY, --demos or --features")
+    if args.env:
+        print("wrote", collect_body(args.env, cfg, args.data, args.workers, args.encoder))
+    if args.demos:
+        print("wrote", collect_demos(cfg, args.data, args.workers, args.encoder))
+    if args.features:
+        recompute_features(args.data, args.encoder)
+
+
+if __name__ == "__main__":
+    main()

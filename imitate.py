@@ -1,0 +1,330 @@
+"""Eq. 1, upper level, and Eq. 5: freeze the policy, infer the goal from a demonstration of another body or camera.
+
+GIIL-ZS  g = goal encoder(p_T), p_T the last video feature of a demo (Sec. 4); each of the 10 demos
+         gives a goal, each goal one episode in the agent's own env with the task's true reward.
+GIIL-FT  from the first demo's zero-shot goal, g is optimised by L_GI (Eq. 5): imagined rollouts of the
+         frozen policy pi(a | s, g), per-step OT reward between the goal decoder's features of the imagined
+         states and the demos (ot_reward.py), a value V_ot(s) trained on TD(lambda) targets of that reward,
+         and the lambda-returns maximised through the dynamics with respect to g only. Jointly, psi is
+         finetuned by L_MG (Eq. 4) with g among its goals (Sec. 4, last paragraph): stop-gradients keep g
+         out of L_MG and psi out of L_GI. 3 seeds.
+
+Choices where the paper is silent (README, "Deviations"):
+* start states of the goal-inference imagination: `--starts-from body` (default) draws them from the
+  world model's posterior on D_body segments: states the agent can be in, from which the policy must
+  perform the task; `demo` maps demo features into the latent space with the goal encoder q(s | p_t),
+  the embodiment-agnostic reading of Eq. 5's D_demo o q_phi, and matches the imagined steps against the
+  demo frames that follow (ot_reward's windowed matching).
+* a segment against a 500-step demo: whole-demo OT (ot_reward.py) against every demo, the best one
+  counting (ROT); for speed, each update uses every `demo_stride`-th demo frame from a random offset
+  (the features are of 8-frame windows, so neighbouring frames are alike; the random offset keeps a
+  fixed stride from aliasing with a gait).
+
+    python imitate.py --demo stickman_run [--view side|diagonal] [--run runs/<name>] [--finetune]
+    python imitate.py --table [--run runs/<name>]
+"""
+import argparse
+import dataclasses
+import json
+import os
+import time
+
+import cv2
+import numpy as np
+import torch
+from tqdm import tqdm
+
+import collect
+import envs
+import ot_reward
+import policy
+import train
+from video_encoder import check_same_encoder
+
+SETTINGS = ("SE-SV", "SE-CV", "CE-SV", "CE-CV")  # Sec. 5: same/cross embodiment x same/cross viewpoint
+
+
+@dataclasses.dataclass
+class ImitateConfig:
+    preset: str = "cpu"
+    steps: int = 300  # goal-finetuning updates (ours, cpu: ~3 min on 2 cores)
+    starts: int = 64  # imagined trajectories per L_GI update (ours)
+    starts_from: str = "body"  # 'body' | 'demo' (module docstring)
+    goal_lr: float = 3e-3  # Adam on g (ours)
+    critic_lr: float = 8e-5  # V_ot, as the phase-1 critic (Dreamer V1)
+    finetune_policy: int = 1  # 1: psi jointly finetuned by L_MG (Sec. 4); 0: the policy stays exactly psi*
+    demo_stride: int = 5  # demo frames used per update: every 5th from a random offset (1 = all)
+    seeds: int = 3  # GIIL-FT seeds (Sec. 5)
+    eval_episodes: int = 1  # episodes per GIIL-ZS goal and per GIIL-FT seed
+    eval_steps: int = envs.EPISODE_STEPS
+    video: int = 1  # write demo | agent side-by-side videos
+
+
+PRESETS = {
+    "smoke": dict(steps=3, starts=8, seeds=2, eval_steps=10, demo_stride=1),
+    "cpu": dict(),
+    "paper": dict(steps=2000, starts=256, demo_stride=1),
+}
+
+
+def setting(agent_body, demo_body, view):
+    return ("SE" if demo_body == agent_body else "CE") + "-" + ("SV" if view == "side" else "CV")
+
+
+def demo_folder(data, demo, view):
+    """data/demos/<demo>_<view>; an unknown demo lists the available ones."""
+    folder = os.path.join(data, "demos", f"{demo}_{view}")
+    if not os.path.isdir(folder):
+        root = os.path.join(data, "demos")
+        have = sorted({n.rsplit("_", 1)[0] for n in os.listdir(root)}) if os.path.isdir(root) else []
+        hint = f"available: {', '.join(have)}" if have else "none collected yet: run `python collect.py --demos`"
+        raise ValueError(f"unknown demo {demo!r} with view {view!r} (no {folder}); {hint}")
+    return folder
+
+
+def body_starts(models, cfgs, rng, device, segments=32):
+    """A pool of D_body posterior states (no gradient) from which imagination starts."""
+    wc, tc = cfgs["wm"], cfgs["train"]
+    episodes = collect.load_folder(os.path.join(tc.data, tc.env), (wc.obs, "action", "is_first", "p"))
+    batch = train.Segments(episodes, (wc.obs, "action", "is_first"), wc.seq_len).sample(segments, rng, device)
+    with torch.no_grad():
+        post, _ = models["world_model"].observe(batch[wc.obs], batch["action"], batch["is_first"])
+    return {k: v.flatten(0, 1) for k, v in post.items()}
+
+
+def goal_inference_loss(models, critic_ot, slow_ot, goal, start, demo_p, cfgs, ot_cfg, offsets=None):  # Eq. 5
+    """L_GI: -lambda-returns of the OT reward of the frozen policy's imagined rollouts, differentiable in g only.
+    goal (F,) the parameter; start dict of (N, .). -> (L_GI, V_ot critic loss, metrics)."""
+    ac = cfgs["ac"]
+    wm, vae, actor = models["world_model"], models["goal_vae"], models["actor"]
+    N = len(start["deter"])
+    with policy.freeze(wm, vae, actor, slow_ot):  # psi*, the world model and the goal decoder are constants here
+        feat, _, _ = policy.rollout(wm, actor, start, goal.expand(N, -1), ac.horizon)  # (N, H + 1, F)
+        with torch.no_grad():
+            reward, best = ot_reward.ot_reward(vae.decode(feat[:, 1:]), demo_p, ot_cfg, offsets)  # (N, H): r^ot on arrival
+        value = slow_ot(feat, None)  # (N, H + 1): V_ot(s), differentiable in feat
+        returns = policy.lambda_return(reward, value, ac.gamma, ac.lambda_)  # (N, H)
+    loss = -returns.mean()  # Eq. 5: -E[sum V], the lambda-returns standing for the values as in Dreamer V1
+    c_loss, c_metrics = policy.critic_loss(critic_ot, feat, None, returns)
+    return loss, c_loss, {"L_GI": loss.item(), "ot_reward": reward.mean().item(), **{"ot_" + k: v for k, v in c_metrics.items()}}
+
+
+def multi_goal_loss(models, start, goal, body_goals, cfgs):  # Eq. 4 during finetuning
+    """L_MG with the current task goal sg(g) among D_body goals: gradients reach psi (actor, critic) only."""
+    n = len(start["deter"])
+    goals = torch.cat([goal.detach().expand(n // 2, -1), body_goals[torch.randint(len(body_goals), (n - n // 2,))]])
+    return policy.policy_losses(models["world_model"], models["dist_net"], models["actor"], models["critic"],
+                                models["slow_critic"], models["return_norm"], start, goals, cfgs["ac"])
+
+
+def finetune_goal(models, cfgs, ic, ot_cfg, goal0, demo_p, seed, device):
+    """GIIL-FT: optimise g (and psi by L_MG) for ic.steps updates from goal0. Returns the final g (F,)."""
+    torch.manual_seed(seed)
+    rng = np.random.default_rng(seed)
+    ac = cfgs["ac"]
+    feat_dim = models["world_model"].feat_dim
+    critic_ot, slow_ot = policy.make_critics(ac, feat_dim, 0)
+    critic_ot, slow_ot = critic_ot.to(device), slow_ot.to(device)
+    goal = torch.nn.Parameter(goal0.clone())
+    opt_goal = torch.optim.Adam([goal], lr=ic.goal_lr)
+    opt_ot = torch.optim.Adam(critic_ot.parameters(), lr=ic.critic_lr)
+    opt_actor = torch.optim.Adam(models["actor"].parameters(), lr=ac.actor_lr)
+    opt_critic = torch.optim.Adam(models["critic"].parameters(), lr=ac.critic_lr)
+    pool = body_starts(models, cfgs, rng, device)
+    with torch.no_grad():
+        body_goals = models["world_model"].feat(pool)
+    demo_p = torch.as_tensor(np.stack([p[: min(len(q) for q in demo_p)] for p in demo_p]), device=device)  # (K, M, D)
+    M = demo_p.shape[1]
+    bar = tqdm(range(ic.steps), desc=f"GIIL-FT seed {seed}", leave=False)
+    for step in bar:
+        index = torch.randint(len(pool["deter"]), (ic.starts,), device=device)
+        body_start = {k: v[index] for k, v in pool.items()}
+        if ic.starts_from == "body":
+            first = int(rng.integers(ic.demo_stride))
+            start, offsets, demo = body_start, None, demo_p[:, first :: ic.demo_stride]
+        else:  # goal-encoder states of demo frames t0, matched against the frames that follow
+            t0 = torch.randint(M - ac.horizon - 1, (ic.starts,), device=device)
+            with torch.no_grad():
+                start = models["goal_vae"].encode(demo_p[torch.randint(len(demo_p), (ic.starts,)), t0])
+            start, offsets, demo = {k: start[k] for k in ("deter", "stoch", "mean", "std")}, t0 + 1, demo_p
+        gi_loss, ot_loss, metrics = goal_inference_loss(models, critic_ot, slow_ot, goal, start, demo, cfgs, ot_cfg, offsets)
+        for opt, loss in ((opt_goal, gi_loss), (opt_ot, ot_loss)):
+            opt.zero_grad(set_to_none=True)
+            loss.backward()
+            opt.step()
+        policy.ema_update(slow_ot, critic_ot, ac.slow_critic_rate)
+        if ic.finetune_policy:
+            a_loss, c_loss, _ = multi_goal_loss(models, body_start, goal, body_goals, cfgs)
+            for opt, loss in ((opt_actor, a_loss), (opt_critic, c_loss)):
+                opt.zero_grad(set_to_none=True)
+                loss.backward()
+                opt.step()
+            policy.ema_update(models["slow_critic"], models["critic"], ac.slow_critic_rate)
+        bar.set_postfix(ot=f"{metrics['ot_reward']:.4f}")
+    return goal.detach()
+
+
+def write_video(path, demo_frames, agent_frames):
+    """demo | agent side by side, 4x upscaled, 20 frames/s (one frame per agent step = 0.05 s)."""
+    n = min(len(demo_frames), len(agent_frames))
+    both = np.concatenate([demo_frames[:n], agent_frames[:n]], axis=2)  # (n, 64, 128, 3)
+    writer = cv2.VideoWriter(path, cv2.VideoWriter_fourcc(*"mp4v"), 20, (both.shape[2] * 4, both.shape[1] * 4))
+    for frame in both:
+        writer.write(cv2.resize(cv2.cvtColor(frame, cv2.COLOR_RGB2BGR), None, fx=4, fy=4, interpolation=cv2.INTER_NEAREST))
+    writer.release()
+
+
+def imitate(run_dir, demo, view, finetune, ic, zero_shot=True):
+    """GIIL-ZS (unless not zero_shot) and GIIL-FT (with finetune) for one demo folder; appends each evaluation
+    to runs/<name>/results.jsonl and returns the rows."""
+    device = "cuda" if torch.cuda.is_available() else "cpu"
+    cfgs, models, ckpt = train.load_run(run_dir, device)
+    tc = cfgs["train"]
+    folder = demo_folder(tc.data, demo, view)
+    demo_body, task = demo.rsplit("_", 1)
+    demos = collect.load_folder(folder, ("pixels", "p"))
+    for k, d in enumerate(demos):
+        check_same_encoder(ckpt["encoder"], d["encoder"], os.path.join(folder, f"{k:02d}.npz"))
+    where = setting(tc.env, demo_body, view)
+    ot_cfg = ot_reward.OTConfig(**ot_reward.PRESETS[ic.preset])
+    env = envs.make_env(tc.env, task)
+    out_dir = os.path.join(run_dir, "imitate")
+    os.makedirs(out_dir, exist_ok=True)
+    results_path = os.path.join(run_dir, "results.jsonl")
+    rows = []
+
+    def evaluate(method, seed, goal, video_demo):
+        scores = []
+        for e in range(ic.eval_episodes):
+            render = bool(ic.video) and e == 0
+            ret, frames = train.run_episode(env, models, goal, ic.eval_steps, cfgs["wm"].obs, 20_000 + 100 * seed + e, render)
+            scores.append(float(envs.normalized_score(task, ret * envs.EPISODE_STEPS / ic.eval_steps)))
+            if render:
+                write_video(os.path.join(out_dir, f"{demo}_{view}_{method}_s{seed}.mp4"), video_demo, frames)
+        row = {"agent": tc.env, "demo": demo, "view": view, "task": task, "setting": where, "method": method, "seed": seed,
+               "score": float(np.mean(scores)), "episode_scores": scores, "time": round(time.time() - t0, 1)}
+        with open(results_path, "a") as f:
+            f.write(json.dumps(row) + "\n")
+        rows.append(row)
+
+    with torch.no_grad():
+        goals = [models["goal_vae"].goal(torch.as_tensor(d["p"][-1], device=device)) for d in demos]  # GIIL-ZS: g = q(s | p_T)
+    t0 = time.time()
+    for k, goal in enumerate(tqdm(goals if zero_shot else [], desc=f"GIIL-ZS {demo} {view}")):
+        evaluate("GIIL-ZS", k, goal, demos[k]["pixels"])
+    if finetune:
+        state = {k: m.state_dict() for k, m in models.items()}
+        for seed in range(ic.seeds):
+            t0 = time.time()
+            for k, m in models.items():  # each seed starts from psi*
+                m.load_state_dict(state[k])
+            goal = finetune_goal(models, cfgs, ic, ot_cfg, goals[0], [d["p"] for d in demos], seed, device)
+            evaluate("GIIL-FT", seed, goal, demos[0]["pixels"])
+    for method in ("GIIL-ZS", "GIIL-FT"):
+        scores = [r["score"] for r in rows if r["method"] == method]
+        if not scores:
+            continue
+        print(f"{method} {tc.env} imitating {demo} ({view} view, {where}): normalised score {np.mean(scores):.1f} +- {stderr(scores):.1f} over {len(scores)} {'demos' if method == 'GIIL-ZS' else 'seeds'}")
+    print(f"appended to {results_path}; videos in {out_dir}")
+    return rows
+
+
+def stderr(values):
+    return float(np.std(values, ddof=1) / np.sqrt(len(values))) if len(values) > 1 else 0.0
+
+
+# The paper's normalised scores (GIIL-ZS, GIIL-FT) for comparison: Tables 1-2 ("all") and 4-11 (per task)
+PAPER = {
+    "walker": {"all": [(42.52, 68.10), (32.97, 64.13), (19.47, 60.76), (18.09, 45.53)],
+               "stand": [(71.01, 100.57), (63.79, 97.37), (47.79, 49.45), (40.95, 49.90)],
+               "walk": [(16.68, 25.70), (19.92, 27.31), (12.68, 92.11), (10.17, 36.70)],
+               "run": [(55.92, 88.96), (12.36, 81.61), (6.40, 76.27), (4.24, 71.25)],
+               "jump": [(26.48, 57.19), (35.81, 50.24), (11.03, 25.21), (17.01, 24.29)]},
+    "stickman": {"all": [(68.27, 68.56), (61.26, 72.66), (54.89, 61.77), (38.37, 58.99)],
+                 "stand": [(96.96, 98.51), (97.59, 99.75), (66.48, 100.83), (62.68, 100.99)],
+                 "walk": [(59.98, 91.00), (59.38, 94.33), (46.77, 22.12), (20.79, 17.57)],
+                 "run": [(80.65, 58.65), (51.70, 59.25), (69.71, 69.49), (37.93, 61.68)],
+                 "jump": [(35.50, 26.07), (36.37, 37.30), (36.59, 54.64), (32.07, 55.73)]},
+}
+
+
+def demo_of(agent, task, where):
+    """(demo name, view) of a setting: SE/CE picks the demonstrator's body, SV/CV its camera."""
+    other = [b for b in envs.BODIES if b != agent][0]
+    return f"{agent if where.startswith('SE') else other}_{task}", "side" if where.endswith("SV") else "diagonal"
+
+
+def load_results(run_dir):
+    """The latest row per (demo, view, method, seed) of runs/<name>/results.jsonl."""
+    path = os.path.join(run_dir, "results.jsonl")
+    rows = {}
+    if os.path.exists(path):
+        with open(path) as f:
+            for line in f:
+                r = json.loads(line)
+                rows[(r["demo"], r["view"], r["method"], r["seed"])] = r
+    return list(rows.values())
+
+
+def table(run_dir, ic, demos_per_cell=10):
+    """Every setting x task for this agent, GIIL-ZS and GIIL-FT; runs only the cells missing from results.jsonl."""
+    agent = train.load_run(run_dir)[0]["train"].env
+    for task in envs.TASKS:
+        for where in SETTINGS:
+            demo, view = demo_of(agent, task, where)
+            done = load_results(run_dir)
+            count = lambda m: sum(r["demo"] == demo and r["view"] == view and r["method"] == m for r in done)
+            zs, ft = count("GIIL-ZS") < demos_per_cell, count("GIIL-FT") < ic.seeds
+            if zs or ft:
+                imitate(run_dir, demo, view, ft, ic, zero_shot=zs)
+    text = markdown_tables(agent, load_results(run_dir))
+    path = os.path.join(run_dir, "tables.md")
+    with open(path, "w") as f:
+        f.write(text)
+    print(text)
+    print(f"wrote {path}")
+
+
+def markdown_tables(agent, rows):
+    """Tables 1/2 (all tasks) and 4-11 (per task) for this agent: ours next to the paper's, mean +- s.e."""
+    def cell(scores):
+        return f"{np.mean(scores):.1f} +- {stderr(scores):.1f}" if scores else "-"
+
+    out = []
+    for task in ("all",) + envs.TASKS:
+        title = f"{agent} agent, {'all tasks (as Table 1/2)' if task == 'all' else task}: normalised score, mean +- s.e."
+        out += [f"### {title}", "", "| setting | GIIL-ZS (ours) | GIIL-FT (ours) | GIIL-ZS (paper) | GIIL-FT (paper) |", "|---|---|---|---|---|"]
+        pick = lambda m, ws: [r["score"] for r in rows if r["method"] == m and r["setting"] in ws and (task == "all" or r["task"] == task)]
+        for k, where in enumerate(SETTINGS):
+            zs, ft = PAPER[agent][task][k]
+            out.append(f"| {where} | {cell(pick('GIIL-ZS', [where]))} | {cell(pick('GIIL-FT', [where]))} | {zs:.2f} | {ft:.2f} |")
+        for name, ws in (("Average", SETTINGS), ("Average w/o SE-SV", SETTINGS[1:])):
+            paper = [np.mean([PAPER[agent][task][SETTINGS.index(w)][m] for w in ws]) for m in (0, 1)]
+            out.append(f"| {name} | {cell(pick('GIIL-ZS', ws))} | {cell(pick('GIIL-FT', ws))} | {paper[0]:.2f} | {paper[1]:.2f} |")
+        out.append("")
+    return "\n".join(out)
+
+
+def main():
+    parser = argparse.ArgumentParser(description="Phase 2: infer the goal from a demo (GIIL-ZS, --finetune: GIIL-FT), or --table.")
+    parser.add_argument("--demo", help="<demonstrator body>_<task>, e.g. stickman_run")
+    parser.add_argument("--view", default="side", choices=envs.VIEWS, help="camera of the demo")
+    parser.add_argument("--run", default="runs/walker_state_cpu_s0", help="the phase-1 run (train.py) whose agent imitates")
+    parser.add_argument("--finetune", action="store_true", help="also GIIL-FT: finetune the goal (Eq. 5), 3 seeds")
+    parser.add_argument("--table", action="store_true", help="all settings x tasks for this agent; keeps finished cells")
+    for field in dataclasses.fields(ImitateConfig):
+        parser.add_argument("--" + field.name.replace("_", "-"), type=type(field.default), default=None,
+                            choices=tuple(PRESETS) if field.name == "preset" else None, help=f"default {field.default!r}, or the preset's")
+    args = parser.parse_args()
+    given = {f.name: getattr(args, f.name) for f in dataclasses.fields(ImitateConfig) if getattr(args, f.name) is not None}
+    ic = ImitateConfig(**{**PRESETS[given.get("preset", "cpu")], **given})
+    if args.table:
+        table(args.run, ic)
+    elif args.demo:
+        imitate(args.run, args.demo, args.view, args.finetune, ic)
+    else:
+        parser.error("pass --demo NAME (e.g. stickman_run) or --table")
+
+
+if __name__ == "__main__":
+    main()

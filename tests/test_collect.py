@@ -1,0 +1,86 @@
+"""collect.py: D_body / D_demo contents, the episode reader's errors, resume (smoke preset)."""
+import os
+
+import numpy as np
+import pytest
+
+import collect
+import experts
+
+SMOKE = collect.CollectConfig(**collect.PRESETS["smoke"])
+
+
+@pytest.fixture(scope="module")
+def data(tmp_path_factory):
+    root = str(tmp_path_factory.mktemp("data"))
+    collect.collect_body("walker", SMOKE, root, workers=1)
+    return root
+
+
+def test_body_dataset_is_unlabelled_mix_without_jump(data):
+    episodes = collect.load_folder(os.path.join(data, "walker"))
+    assert len(episodes) == SMOKE.explore_episodes + len(collect.BODY_TASKS) * SMOKE.task_episodes
+    assert {e["task"] for e in episodes} == {"explore", "stand", "walk", "run"}
+    assert not any("jump" in e["source"] for e in episodes)
+    e = episodes[-1]
+    length = SMOKE.episode_steps + 1
+    assert e["state"].shape == (length, 24) and e["pixels"].shape == (length, 64, 64, 3) and e["action"].shape == (length, 6)
+    assert e["is_first"][0] and not e["is_first"][1:].any() and not e["action"][0].any() and e["reward"][0] == 0
+    assert np.allclose(np.linalg.norm(e["p"], axis=1), 1, atol=1e-5)
+
+
+def test_resume_skips_existing_episodes(data):
+    folder = os.path.join(data, "walker")
+    before = {n: os.path.getmtime(os.path.join(folder, n)) for n in os.listdir(folder)}
+    os.remove(os.path.join(folder, "walk_0000.npz"))
+    collect.collect_body("walker", SMOKE, data, workers=1)
+    after = {n: os.path.getmtime(os.path.join(folder, n)) for n in os.listdir(folder)}
+    assert sorted(after) == sorted(before)  # same files, no duplicates, no temporaries
+    assert [n for n in after if after[n] != before[n]] == ["walk_0000.npz"]
+
+
+def test_episodes_are_reproducible(data, tmp_path):
+    collect.collect_body("walker", SMOKE, str(tmp_path), workers=2)
+    for name in ("explore_0001.npz", "run_0000.npz"):
+        a = collect.load_episode(os.path.join(data, "walker", name))
+        b = collect.load_episode(os.path.join(tmp_path, "walker", name))
+        assert np.array_equal(a["state"], b["state"]) and np.array_equal(a["p"], b["p"])
+
+
+def test_demo_return_is_sum_of_rewards_and_views_share_motion(tmp_path):
+    cfg = collect.CollectConfig(**dict(collect.PRESETS["smoke"], demo_episodes=1))
+    collect.collect_demos(cfg, str(tmp_path), workers=2)
+    folders = sorted(os.listdir(tmp_path / "demos"))
+    assert len(folders) == 2 * 4 * 2  # body x task x view
+    side = collect.load_episode(str(tmp_path / "demos" / "stickman_jump_side" / "00.npz"))
+    diagonal = collect.load_episode(str(tmp_path / "demos" / "stickman_jump_diagonal" / "00.npz"))
+    assert side["return"] == pytest.approx(side["reward"].sum(), rel=1e-5)
+    assert np.array_equal(side["state"], diagonal["state"]) and not np.array_equal(side["pixels"], diagonal["pixels"])
+    assert side["source"] == "jump@final" and side["view"] == "side"
+
+
+def test_reader_names_corrupt_file(data, tmp_path):
+    good = os.path.join(data, "walker", "explore_0000.npz")
+    truncated = str(tmp_path / "truncated.npz")
+    with open(good, "rb") as f, open(truncated, "wb") as g:
+        g.write(f.read()[:2000])
+    with pytest.raises(ValueError, match="truncated.npz"):
+        collect.load_episode(truncated)
+    episode = dict(np.load(good))
+    episode["p"] = episode["p"][:-3]
+    bad = str(tmp_path / "short_p.npz")
+    np.savez(bad, **episode)
+    with pytest.raises(ValueError, match=r"short_p.npz: key 'p' has 18 steps, expected 21"):
+        collect.load_episode(bad)
+    del episode["action"]
+    np.savez(bad, **episode)
+    with pytest.raises(ValueError, match="short_p.npz: missing key.*action"):
+        collect.load_episode(bad)
+
+
+def test_missing_expert_names_the_command(tmp_path, monkeypatch):
+    monkeypatch.setattr(experts, "EXPERT_DIR", str(tmp_path))
+    with pytest.raises(FileNotFoundError, match="python experts.py --body stickman"):
+        collect.collect_body("stickman", SMOKE, str(tmp_path), workers=1)
+    with pytest.raises(ValueError, match="valid body names are walker, stickman"):
+        collect.collect_body("humanoid", SMOKE, str(tmp_path), workers=1)

@@ -1,0 +1,75 @@
+"""train.py: end to end with the smoke preset, resume, config mismatch, NaN stop, the paper preset's sizes."""
+import json
+import os
+import shutil
+
+import numpy as np
+import pytest
+import torch
+
+import collect
+import train
+from conftest import train_args
+
+
+def test_smoke_run_writes_checkpoint_metrics_and_goal_reaching(smoke_run):
+    ckpt = torch.load(os.path.join(smoke_run, "checkpoint.pt"), weights_only=False)
+    assert ckpt["step"] == train.TRAIN_PRESETS["smoke"]["steps"] and ckpt["encoder"] == "default-v1"
+    assert ckpt["config"]["wm"]["obs"] == "state" and ckpt["config"]["wm"]["deter"] == 16  # the smoke preset, resolved
+    lines = [json.loads(l) for l in open(os.path.join(smoke_run, "metrics.jsonl"))]
+    assert [l["step"] for l in lines] == [2, 4, 6] and "actor_loss" in lines[-1] and "open_loop" in lines[-1]
+    rows = json.load(open(os.path.join(smoke_run, "goal_reaching.json")))
+    assert len(rows) == 2 and all(-1 <= r["policy_similarity"] <= 1 for r in rows)
+
+
+def test_resume_continues_and_refuses_to_overwrite(smoke_run, smoke_data, tmp_path):
+    run = str(tmp_path / "run")
+    shutil.copytree(smoke_run, run)
+    cfgs = train.resolve_configs(train_args(data=smoke_data, steps=8), "smoke", train.COMPONENTS)
+    with pytest.raises(SystemExit, match="pass --resume"):
+        train.train(cfgs, run, resume=False)
+    train.train(cfgs, run, resume=True)
+    assert torch.load(os.path.join(run, "checkpoint.pt"), weights_only=False)["step"] == 8
+    assert [json.loads(l)["step"] for l in open(os.path.join(run, "metrics.jsonl"))] == [2, 4, 6, 8]
+    other = train.resolve_configs(train_args(data=smoke_data, **{"wm.deter": 32}), "smoke", train.COMPONENTS)
+    with pytest.raises(SystemExit, match=r"other wm\.deter"):
+        train.train(other, run, resume=True)
+
+
+def test_nan_loss_stops_and_keeps_last_checkpoint(smoke_run, smoke_data, tmp_path, monkeypatch):
+    run = str(tmp_path / "run")
+    shutil.copytree(smoke_run, run)
+    before = open(os.path.join(run, "checkpoint.pt"), "rb").read()
+    original = train.goal_vae.GoalVAE.loss
+    monkeypatch.setattr(train.goal_vae.GoalVAE, "loss", lambda self, p, post: (original(self, p, post)[0] * float("nan"), {}))
+    cfgs = train.resolve_configs(train_args(data=smoke_data, steps=12), "smoke", train.COMPONENTS)
+    with pytest.raises(SystemExit, match=r"Eq. 3 goal-VAE loss is nan at update 6.*checkpoint.pt \(update 6\), untouched"):
+        train.train(cfgs, run, resume=True)
+    assert open(os.path.join(run, "checkpoint.pt"), "rb").read() == before
+
+
+def test_segments_stay_inside_episodes(smoke_data):
+    episodes = collect.load_folder(os.path.join(smoke_data, "walker"), ("state", "action", "is_first", "p"))
+    batch = train.Segments(episodes, ("state", "is_first"), 8).sample(200, np.random.default_rng(0), "cpu")
+    assert batch["state"].shape == (200, 8, 24)
+    assert not batch["is_first"][:, 1:].any()  # an episode start can only open a segment
+    for b in range(0, 200, 17):  # every segment is a slice of its own episode
+        states = episodes[batch["episode"][b]]["state"]
+        first = np.flatnonzero((states == batch["state"][b, 0].numpy()).all(1))[0]
+        assert np.array_equal(states[first : first + 8], batch["state"][b].numpy())
+
+
+def test_paper_preset_builds_pixel_dreamer_sizes_and_updates(smoke_data, tmp_path):
+    """The paper's sizes (pixels, GRU 1024, CNN depth 48) run a couple of updates on CPU with a tiny batch."""
+    small = {"steps": 2, "policy_start": 1, "eval_goals": 1, "eval_steps": 3, "holdout_every": 3, "log_every": 1,
+             "checkpoint_every": 2, "wm.batch": 2, "wm.seq_len": 8, "ac.starts": 4, "ac.horizon": 3, "data": smoke_data}
+    cfgs = train.resolve_configs(train_args(**small), "paper", train.COMPONENTS)
+    assert (cfgs["wm"].obs, cfgs["wm"].deter, cfgs["wm"].cnn_depth) == ("pixels", 1024, 48)
+    train.train(cfgs, str(tmp_path / "paper"), resume=False)
+    ckpt = torch.load(tmp_path / "paper" / "checkpoint.pt", weights_only=False)
+    assert ckpt["step"] == 2 and ckpt["obs_shape"] == (64, 64, 3)
+
+
+def test_missing_checkpoint_names_the_train_command(tmp_path):
+    with pytest.raises(FileNotFoundError, match="python train.py --env walker"):
+        train.load_run(str(tmp_path))

@@ -1,0 +1,317 @@
+"""Eq. 1, lower level: phase 1 learns psi* = argmin L_MG on D_body alone, with no task labels.
+
+One update, in the order of Sec. 4:
+  Eq. 2  world model (RSSM) on a batch of D_body segments            -> posterior states s_t
+  Eq. 3  goal VAE q(s | p_t), p(p_t | s) against sg(posterior)
+  Eq. 7  temporal distance network on pairs of posterior states
+  Eq. 4  goal-conditioned actor-critic in imagination, reward -d(s, g)   (after `policy_start` updates,
+         once the world model and distance give a meaningful reward)
+Ends with the multi-task policy in the real environment: goals from held-out D_body episodes
+(g = goal encoder of the episode's last video feature, as GIIL-ZS does with a demo), against a
+random policy in the same run (evaluate_goal_reaching).
+
+    python train.py --env walker [--obs state|pixels] [--preset smoke|cpu|paper] [--seed N] [--resume]
+"""
+import argparse
+import dataclasses
+import json
+import os
+import time
+
+import numpy as np
+import torch
+from tqdm import tqdm
+
+import collect
+import distance
+import envs
+import goal_vae
+import policy
+import world_model
+from video_encoder import check_same_encoder, load_encoder
+
+
+@dataclasses.dataclass
+class TrainConfig:
+    env: str = "walker"  # the agent's body
+    preset: str = "cpu"  # smoke | cpu | paper: sizes of every component and of D_body
+    seed: int = 0
+    steps: int = 3000  # updates (ours, cpu: ~25 min on 2 cores; Dreamer-scale runs use ~1e5 and more)
+    policy_start: int = 1000  # updates of the models before the actor-critic starts (ours)
+    holdout_every: int = 20  # every 20th D_body episode is held out of training, for the goal-reaching evaluation
+    eval_goals: int = 10  # held-out episodes used as goals at the end
+    eval_steps: int = 250  # env steps per goal-reaching episode
+    log_every: int = 100
+    checkpoint_every: int = 250
+    data: str = "data"
+    encoder: str = "default"  # video encoder of the features p_t (video_encoder.py)
+
+
+TRAIN_PRESETS = {
+    "smoke": dict(steps=6, policy_start=2, holdout_every=3, eval_goals=2, eval_steps=10, log_every=2, checkpoint_every=3),
+    "cpu": dict(),
+    "paper": dict(steps=100_000, policy_start=5_000, eval_steps=500, log_every=1000, checkpoint_every=5000),
+}
+# every component's config class, presets and flag prefix ('' = no prefix)
+COMPONENTS = {
+    "train": (TrainConfig, TRAIN_PRESETS, ""),
+    "wm": (world_model.WorldModelConfig, world_model.PRESETS, "wm-"),
+    "goal": (goal_vae.GoalVAEConfig, goal_vae.PRESETS, "goal-"),
+    "dist": (distance.DistanceConfig, distance.PRESETS, "dist-"),
+    "ac": (policy.ActorCriticConfig, policy.PRESETS, "ac-"),
+}
+# fields that may differ when a run is resumed: they do not change what the models are
+RESUMABLE = {"steps", "log_every", "checkpoint_every", "eval_goals", "eval_steps", "data"}
+
+
+def add_config_flags(parser, components):
+    """One flag per field of each component's config (default None: 'not given', so presets apply)."""
+    for name in components:
+        cls, presets, prefix = COMPONENTS[name]
+        for field in dataclasses.fields(cls):
+            flag = "--" + prefix + field.name.replace("_", "-")
+            choices = tuple(presets) if field.name == "preset" else None
+            parser.add_argument(flag, dest=f"{name}.{field.name}", type=type(field.default), default=None, choices=choices, metavar=type(field.default).__name__.upper() if not choices else None,
+                                help=f"{cls.__name__}.{field.name} (default {field.default!r}, or the preset's)")
+
+
+def resolve_configs(args, preset, components):
+    """dataclass defaults < the preset's overrides < explicit flags -> {component: config}."""
+    out = {}
+    for name in components:
+        cls, presets, _ = COMPONENTS[name]
+        given = {f.name: getattr(args, f"{name}.{f.name}") for f in dataclasses.fields(cls)}
+        out[name] = cls(**{**presets[preset], **{k: v for k, v in given.items() if v is not None}})
+    return out
+
+
+class Segments:
+    """Random (B, T) segments of whole episodes (never crossing an episode's end), as torch tensors."""
+
+    def __init__(self, episodes, keys, seq_len):
+        lengths = np.array([len(e["is_first"]) for e in episodes])
+        if lengths.min() < seq_len:
+            raise ValueError(f"episodes of {lengths.min()} steps are shorter than the segment length {seq_len}: collect longer episodes or pass --wm-seq-len")
+        self.data = {k: np.concatenate([e[k] for e in episodes]) for k in keys}
+        self.starts = np.concatenate([[0], np.cumsum(lengths)[:-1]])
+        self.lengths, self.seq_len = lengths, seq_len
+
+    def sample(self, batch, rng, device):
+        episode = rng.integers(len(self.lengths), size=batch)
+        start = self.starts[episode] + (rng.random(batch) * (self.lengths[episode] - self.seq_len + 1)).astype(int)
+        index = start[:, None] + np.arange(self.seq_len)  # (B, T)
+        out = {k: torch.as_tensor(v[index], device=device) for k, v in self.data.items()}
+        out["episode"] = torch.as_tensor(episode, device=device)
+        return out
+
+
+def build_models(cfgs, obs_shape, action_dim, p_dim, device):
+    wm = world_model.WorldModel(cfgs["wm"], obs_shape, action_dim)
+    models = {
+        "world_model": wm,
+        "goal_vae": goal_vae.GoalVAE(cfgs["goal"], p_dim, cfgs["wm"].deter, cfgs["wm"].stoch),
+        "dist_net": distance.DistanceNet(cfgs["dist"], wm.feat_dim),
+        "actor": policy.Actor(cfgs["ac"], wm.feat_dim, wm.feat_dim, action_dim),
+        "return_norm": policy.ReturnNorm(cfgs["ac"].return_norm_decay),
+    }
+    models["critic"], models["slow_critic"] = policy.make_critics(cfgs["ac"], wm.feat_dim, wm.feat_dim)
+    return {k: m.to(device) for k, m in models.items()}
+
+
+def load_run(run_dir, device="cpu"):
+    """A trained run: (configs, models, checkpoint metadata). Errors name the command that makes one."""
+    path = os.path.join(run_dir, "checkpoint.pt")
+    if not os.path.exists(path):
+        raise FileNotFoundError(f"no checkpoint at {path}: train one with `python train.py --env walker` (runs/<env>_<obs>_<preset>_s<seed>)")
+    ckpt = torch.load(path, map_location=device, weights_only=False)
+    cfgs = {name: COMPONENTS[name][0](**fields) for name, fields in ckpt["config"].items()}
+    models = build_models(cfgs, ckpt["obs_shape"], ckpt["action_dim"], ckpt["p_dim"], device)
+    for name, model in models.items():
+        model.load_state_dict(ckpt["models"][name])
+    return cfgs, models, ckpt
+
+
+def atomic_save(obj, path):
+    tmp = path + ".tmp"
+    torch.save(obj, tmp)
+    os.replace(tmp, path)
+
+
+@torch.no_grad()
+def run_episode(env, models, goal, steps, obs_key, seed, render=False, random_actions=False):
+    """Act in the real env with pi(a | s_t, g), s_t filtered online by the world model's posterior (T = 1 observe
+    calls). goal (F,), unused with random_actions. -> (return, frames (steps + 1, 64, 64, 3) if render else None)."""
+    wm, actor = models["world_model"], models["actor"]
+    device = next(wm.parameters()).device
+    rng = np.random.default_rng(seed)
+    obs, _ = env.reset(seed=seed)
+    action = np.zeros(env.action_dim, np.float32)
+    state, total, frames = None, 0.0, []
+    for t in range(steps + 1):
+        if render or obs_key == "pixels":
+            frames.append(env.render())
+        o = torch.as_tensor(frames[-1] if obs_key == "pixels" else obs, device=device)[None, None]
+        post, _ = wm.observe(o, torch.as_tensor(action, device=device)[None, None], torch.tensor([[t == 0]], device=device), state)
+        state = {k: v[:, -1] for k, v in post.items()}
+        if t == steps:
+            break
+        if random_actions:
+            action = rng.uniform(-1, 1, env.action_dim).astype(np.float32)
+        else:
+            action = actor(wm.feat(state), goal[None], deterministic=True)[0][0].cpu().numpy()
+        obs, reward, _, _, _ = env.step(action)
+        total += reward
+    return total, (np.array(frames) if render else None)
+
+
+def evaluate_goal_reaching(models, cfgs, held_out, encoder, device):
+    """The multi-task policy in the real env. Each goal: a held-out D_body episode's last feature p_T, g = goal
+    encoder(p_T). Measured from the agent's own rendered video: the cosine similarity between its features over the
+    second half of the episode and p_T; where the episode came from a task expert, also that task's normalised
+    score. The same for uniform random actions with the same seeds."""
+    tc = cfgs["train"]
+    rows = []
+    for k, episode in enumerate(tqdm(held_out[: tc.eval_goals], desc="goal reaching")):
+        p_goal = episode["p"][-1]
+        task = episode["task"] if episode["task"] in envs.TASKS else "stand"
+        env = envs.make_env(tc.env, task)
+        goal = models["goal_vae"].goal(torch.as_tensor(p_goal, device=device))
+        row = {"source": episode["source"], "task": episode["task"]}
+        for name, random_actions in (("policy", False), ("random", True)):
+            ret, frames = run_episode(env, models, goal, tc.eval_steps, cfgs["wm"].obs, 10_000 + k, True, random_actions)
+            p = encoder(frames)  # (steps + 1, D): what the agent's own video shows
+            row[f"{name}_similarity"] = float((p[len(p) // 2 :] @ p_goal).mean())
+            row[f"{name}_score"] = float(envs.normalized_score(task, ret * envs.EPISODE_STEPS / tc.eval_steps))
+        rows.append(row)
+    return rows
+
+
+def train(cfgs, run_dir, resume):
+    tc, wc = cfgs["train"], cfgs["wm"]
+    device = "cuda" if torch.cuda.is_available() else "cpu"
+    # seeding: one block, everything from the run seed
+    torch.manual_seed(tc.seed)
+    rng = np.random.default_rng(tc.seed)
+    folder = os.path.join(tc.data, tc.env)
+    if not os.path.isdir(folder) or not os.listdir(folder):
+        print(f"D_body missing at {folder}: collecting it (python collect.py --env {tc.env} --preset {tc.preset})")
+        collect.collect_body(tc.env, collect.CollectConfig(**collect.PRESETS[tc.preset]), tc.data, os.cpu_count(), tc.encoder)
+    encoder = load_encoder(tc.encoder)
+    episodes = collect.load_folder(folder, (wc.obs, "action", "is_first", "p"), encoder=encoder.name)
+    held_out = episodes[:: tc.holdout_every]
+    train_eps = [e for k, e in enumerate(episodes) if k % tc.holdout_every]
+    data = Segments(train_eps, (wc.obs, "action", "is_first", "p"), wc.seq_len)
+    obs_shape = episodes[0][wc.obs].shape[1] if wc.obs == "state" else (64, 64, 3)
+    action_dim, p_dim = episodes[0]["action"].shape[1], episodes[0]["p"].shape[1]
+    print(f"D_body {folder}: {len(train_eps)} training + {len(held_out)} held-out episodes, {sum(data.lengths)} steps, features {encoder.name}")
+
+    models = build_models(cfgs, obs_shape, action_dim, p_dim, device)
+    ac = cfgs["ac"]
+    optims = {
+        "world_model": torch.optim.Adam(models["world_model"].parameters(), lr=wc.lr),
+        "goal_vae": torch.optim.Adam(models["goal_vae"].parameters(), lr=cfgs["goal"].lr),
+        "dist_net": torch.optim.Adam(models["dist_net"].parameters(), lr=cfgs["dist"].lr),
+        "actor": torch.optim.Adam(models["actor"].parameters(), lr=ac.actor_lr),
+        "critic": torch.optim.Adam(models["critic"].parameters(), lr=ac.critic_lr),
+    }
+    clip = {"world_model": wc.grad_clip, "goal_vae": cfgs["goal"].grad_clip, "dist_net": cfgs["dist"].grad_clip, "actor": ac.grad_clip, "critic": ac.grad_clip}
+    ckpt_path = os.path.join(run_dir, "checkpoint.pt")
+    config = {name: dataclasses.asdict(c) for name, c in cfgs.items()}
+    step = 0
+    if os.path.exists(ckpt_path):
+        if not resume:
+            raise SystemExit(f"{ckpt_path} exists: pass --resume to continue that run, or another --seed for a new one")
+        ckpt = torch.load(ckpt_path, map_location=device, weights_only=False)
+        changed = [f"{n}.{k}" for n in config for k in config[n] if k not in RESUMABLE and ckpt["config"][n].get(k) != config[n][k]]
+        if changed:
+            raise SystemExit(f"{ckpt_path} was trained with other {', '.join(changed)}: pass the same flags to resume, or start a new run")
+        check_same_encoder(ckpt["encoder"], encoder.name, ckpt_path)
+        for name, model in models.items():
+            model.load_state_dict(ckpt["models"][name])
+        for name, opt in optims.items():
+            opt.load_state_dict(ckpt["optims"][name])
+        step, rng = ckpt["step"], ckpt["rng"]
+        torch.set_rng_state(ckpt["torch_rng"])
+        print(f"resumed {ckpt_path} at update {step}")
+    os.makedirs(run_dir, exist_ok=True)
+
+    def save():
+        atomic_save({"config": config, "step": step, "rng": rng, "torch_rng": torch.get_rng_state(), "encoder": encoder.name,
+                     "obs_shape": obs_shape, "action_dim": action_dim, "p_dim": p_dim,
+                     "models": {k: m.state_dict() for k, m in models.items()}, "optims": {k: o.state_dict() for k, o in optims.items()}}, ckpt_path)
+        return step
+
+    def apply(name, loss, term):
+        if not torch.isfinite(loss):
+            raise SystemExit(f"{term} is {loss.item()} at update {step}: stopped; the last good checkpoint is {ckpt_path} (update {saved}), untouched")
+        optims[name].zero_grad(set_to_none=True)
+        loss.backward()
+        torch.nn.utils.clip_grad_norm_(models[name].parameters(), clip[name])
+        optims[name].step()
+
+    saved, log, t0, metrics = step, open(os.path.join(run_dir, "metrics.jsonl"), "a"), time.time(), {}
+    wm, vae, dist_net = models["world_model"], models["goal_vae"], models["dist_net"]
+    bar = tqdm(total=tc.steps, initial=step, desc=f"train {os.path.basename(run_dir)}")
+    while step < tc.steps:
+        batch = data.sample(wc.batch, rng, device)
+        loss, m, post = wm.loss(batch)  # Eq. 2
+        apply("world_model", loss, "Eq. 2 world-model loss")
+        metrics.update(m)
+        loss, m = vae.loss(batch["p"], post)  # Eq. 3
+        apply("goal_vae", loss, "Eq. 3 goal-VAE loss")
+        metrics.update(m)
+        pairs = distance.sample_pairs(batch["episode"], batch["is_first"], cfgs["dist"].pairs)
+        loss, m = distance.distance_loss(dist_net, wm.feat(post), pairs, wc.seq_len, cfgs["dist"].contrastive_weight)  # Eq. 7
+        apply("dist_net", loss, "Eq. 7 distance loss")
+        metrics.update(m)
+        if step >= tc.policy_start:  # Eq. 4
+            start = policy.sample_starts(post, ac.starts)
+            with torch.no_grad():
+                goals = policy.sample_goals(wm.feat(post).flatten(0, 1), vae.goal(batch["p"]).flatten(0, 1), len(start["deter"]), ac.goal_mix)
+            a_loss, c_loss, m = policy.policy_losses(wm, dist_net, models["actor"], models["critic"], models["slow_critic"], models["return_norm"], start, goals, ac)
+            apply("actor", a_loss, "Eq. 4 actor loss")
+            apply("critic", c_loss, "Eq. 4 critic loss")
+            policy.ema_update(models["slow_critic"], models["critic"], ac.slow_critic_rate)
+            metrics.update(m)
+        step += 1
+        bar.update(1)
+        if step % tc.log_every == 0 or step == tc.steps:
+            metrics.update(step=step, updates_per_s=tc.log_every / (time.time() - t0), open_loop=wm.open_loop_error(data.sample(wc.batch, rng, device), wc.seq_len // 2))
+            t0 = time.time()
+            log.write(json.dumps(metrics) + "\n")
+            log.flush()
+            g = lambda k: metrics.get(k, float("nan"))
+            bar.write(f"{step}: Eq.2 wm {g('wm_loss'):.2f} (recon {g('recon'):.2f} kl {g('kl'):.2f} open-loop {g('open_loop'):.3f}) | "
+                      f"Eq.3 goal {g('goal_loss'):.2f} (cos {g('goal_cos'):.2f}) | Eq.7 dist {g('dist_loss'):.3f} | "
+                      f"Eq.4 actor {g('actor_loss'):.3f} critic {g('critic_loss'):.3f} reward {g('reward'):.3f} | {g('updates_per_s'):.1f} upd/s")
+        if step % tc.checkpoint_every == 0 or step == tc.steps:
+            saved = save()
+    bar.close()
+    rows = evaluate_goal_reaching(models, cfgs, held_out, encoder, device)
+    with open(os.path.join(run_dir, "goal_reaching.json"), "w") as f:
+        json.dump(rows, f, indent=1)
+    mean = lambda key, rs: float(np.mean([r[key] for r in rs])) if rs else float("nan")
+    tasked = [r for r in rows if r["task"] in envs.TASKS]
+    print(f"goal reaching over {len(rows)} held-out goals: video-feature similarity to the goal policy {mean('policy_similarity', rows):.3f} "
+          f"vs random {mean('random_similarity', rows):.3f}; normalised score on the goal's task ({len(tasked)} goals) "
+          f"policy {mean('policy_score', tasked):.1f} vs random {mean('random_score', tasked):.1f}")
+    print(f"wrote {ckpt_path}, {run_dir}/metrics.jsonl, {run_dir}/goal_reaching.json")
+    return run_dir
+
+
+def main():
+    parser = argparse.ArgumentParser(description="Phase 1: pretrain the world model, goal VAE, distance and multi-task policy on D_body.")
+    parser.add_argument("--resume", action="store_true", help="continue runs/<name>/checkpoint.pt")
+    parser.add_argument("--obs", dest="wm.obs", choices=("state", "pixels"), default=None, help="world-model input (default: the preset's)")
+    parser.add_argument("--run-dir", default=None, help="default runs/<env>_<obs>_<preset>_s<seed>")
+    add_config_flags(parser, COMPONENTS)
+    args = parser.parse_args()
+    envs._check_name("body", getattr(args, "train.env") or TrainConfig.env, envs.BODIES)
+    cfgs = resolve_configs(args, getattr(args, "train.preset") or "cpu", COMPONENTS)
+    tc = cfgs["train"]
+    run_dir = args.run_dir or os.path.join("runs", f"{tc.env}_{cfgs['wm'].obs}_{tc.preset}_s{tc.seed}")
+    train(cfgs, run_dir, args.resume)
+
+
+if __name__ == "__main__":
+    main()
