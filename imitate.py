@@ -180,6 +180,7 @@ def imitate(run_dir, demo, view, finetune, ic, zero_shot=True):
     device = "cuda" if torch.cuda.is_available() else "cpu"
     cfgs, models, ckpt = train.load_run(run_dir, device)
     tc = cfgs["train"]
+    torch.set_num_threads(tc.threads)
     folder = demo_folder(tc.data, demo, view)
     demo_body, task = demo.rsplit("_", 1)
     demos = collect.load_folder(folder, ("pixels", "p"))

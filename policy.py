@@ -47,12 +47,14 @@ class ActorCriticConfig:
     return_norm_decay: float = 0.99  # EMA decay of the 5-95 percentile range of returns, Dreamer V3
     starts: int = 2500  # imagination start states per update: Dreamer V1 starts from all 50x50 posterior states
     goal_mix: float = 0.5  # share of goals from the goal encoder, the rest D_body posterior states (ours; sample_goals)
+    bc: float = 0.0  # weight of hindsight goal-conditioned behaviour cloning on D_body (ours, bc_loss; 0 = Eq. 4 alone)
 
 
 PRESETS = {
     "smoke": dict(units=16, actor_layers=2, critic_layers=2, horizon=5, starts=32),
     # ours: an update costs time linear in starts (~1 s for all 800 states of a 16x50 batch on one core)
-    "cpu": dict(units=256, actor_layers=2, critic_layers=2, starts=256),
+    # bc: on a CPU budget (~2k actor updates) Eq. 4 alone did not learn to reach goals (README, Deviations)
+    "cpu": dict(units=256, actor_layers=2, critic_layers=2, starts=256, actor_lr=3e-4, bc=1.0),
     "paper": dict(units=1024, horizon=16, starts=48 * 48),  # GenRL: horizon 16, all states of a 48x48 batch (FACTS.md)
 }
 
@@ -207,6 +209,23 @@ def actor_loss(returns, log_prob, return_norm, entropy_scale):  # Eq. 4
     entropy = -log_prob.mean()
     loss = -objective - entropy_scale * entropy
     return loss, {"actor_loss": loss.item(), "return": returns.mean().item(), "return_scale": scale.item(), "entropy": entropy.item()}
+
+
+def bc_loss(actor, post_feat, goal_feat, action):
+    """Hindsight goal-conditioned behaviour cloning (ours, a deviation; GCSL, Ghosh et al. 2021): D_body has no task
+    labels, but each of its actions a_t reaches what its own episode shows later, so -log pi(a_t | s_t, g) with g the
+    goal encoder's state of a later frame of the same segment. post_feat (B, T, F) posterior feats, goal_feat (B, T, F)
+    goal-encoder goals of every frame, action (B, T, A) with action[:, t] = a_{t-1} (world_model.py's alignment)."""
+    B, T, _ = post_feat.shape
+    t = torch.randint(T - 1, (B,), device=post_feat.device)  # s_t, acted on with a_t = action[:, t + 1]
+    later = t + 1 + (torch.rand(B, device=post_feat.device) * (T - 1 - t)).long()  # a frame in (t, T - 1]
+    rows = torch.arange(B, device=post_feat.device)
+    mean, std = actor.distribution(post_feat[rows, t].detach(), goal_feat[rows, later].detach())
+    a = action[rows, t + 1].clamp(-0.999, 0.999)  # tanh is never exactly +-1
+    u = torch.atanh(a)
+    log_prob = (-0.5 * ((u - mean) / std) ** 2 - std.log() - 0.5 * math.log(2 * math.pi)).sum(-1) - torch.log1p(-a**2).sum(-1)
+    loss = -log_prob.mean()
+    return loss, {"bc_loss": loss.item()}
 
 
 def critic_loss(critic, feat, goal, returns):  # Eq. 4: V_eta trained with TD(lambda) targets

@@ -23,14 +23,14 @@ frame, read from colour alone (blue checker floor, black sky, orange body; envs.
            saturates at one square per step (20 m/s), far above a run (8 m/s). The vertical shift is
            undone for the far edge only, and near rows move more: a hop in place reads ~0.3 m/s.
   lift     vertical translation: the floor's top edge (its far side) moves only when the camera moves in
-           z, by the same number of pixels in both views (~15 px per metre, measured); median over
+           z, by the same number of pixels in both views (~15-20 px per metre, measured); median over
            columns of its sub-pixel shift (columns where the body crosses the edge are skipped).
   limbs    limb motion: the fraction of the body silhouette that changes between frames (XOR / union).
   reach    posture: how far the silhouette reaches above the centre of mass, which the camera holds at a
            fixed row: 1 - (its top row) / 64; upright ~0.9, lying ~0.65 in both views (measured). Without
            it a body lying still would look like one standing still.
 Speed, lift and limbs come from consecutive frames; each is averaged over the k - 1 frame pairs of the
-window, reach over its k frames. The four window cues are squashed (log1p of the motion cues over a
+window, reach over its k frames. The four window cues are squashed (logarithms of the motion cues over a
 noise floor, reach linear) into units where 1 is a clear difference, then mapped by fixed random Fourier
 features (Rahimi & Recht 2007) to DEFAULT_DIM unit vectors, cos(W x + b) with W ~ N(0, 1) drawn once from
 a frozen NumPy stream. The cosine of two features then approximates the Gaussian kernel
@@ -75,10 +75,12 @@ FLOOR_CONTRAST = 25.0  # grey-level difference of the two checker colours
 BODY_RED = 30  # a body pixel has R - B above this (and R above 60)
 MIN_EDGE_COLUMNS = 8  # fewer columns showing the floor's top edge: no vertical shift is measured
 MIN_FLOOR_PIXELS = 50  # fewer floor pixels in both frames: no speed is measured
-# Squashing of the window cues into units where 1 is a clear difference: log1p(cue / floor), reach / unit.
+# Squashing of the window cues into units where 1 is a clear difference. Translation is what the rewards
+# measure, so speed and lift get log2(1 + cue / floor): a factor of 2 is one unit; limbs, which also change
+# with body and view, get log1p(cue / floor): a factor of e; reach is linear.
 SPEED_FLOOR = 0.02  # metres per step (0.4 m/s); a walk (1 m/s) is 2.5 floors, a run (8 m/s) 20
-LIFT_FLOOR = 0.1  # pixels per step (~0.14 m/s vertically at ~15 px/m); a hop averages ~1 px per step
-LIMBS_FLOOR = 0.05  # fraction of the silhouette changing per step
+LIFT_FLOOR = 0.1  # pixels per step (~0.1 m/s vertically); a hop or a bouncing gait moves ~1 px per step
+LIMBS_FLOOR = 0.05  # fraction of the silhouette changing per step; a still body ~0.05, a gait ~0.4
 REACH_UNIT = 0.1  # reach of an upright body ~0.9-0.95, of a lying one ~0.6-0.7 (measured, both views)
 PROJECTION_SEED = 0  # RandomState stream: frozen by NumPy (NEP 19), the same on every machine
 
@@ -180,7 +182,7 @@ class DefaultEncoder:
         motion = window_mean(cues[:, :3], weights[:, :3], self.window - 1)
         reach = window_mean(cues[:, 3:], weights[:, 3:], self.window)
         speed, lift, limbs = motion.T
-        x = np.stack([np.log1p(speed / SPEED_FLOOR), np.log1p(lift / LIFT_FLOOR), np.log1p(limbs / LIMBS_FLOOR), reach[:, 0] / REACH_UNIT], 1)
+        x = np.stack([np.log2(1 + speed / SPEED_FLOOR), np.log2(1 + lift / LIFT_FLOOR), np.log1p(limbs / LIMBS_FLOOR), reach[:, 0] / REACH_UNIT], 1)
         assert x.shape == (len(frames), 4)
         return x
 

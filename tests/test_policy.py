@@ -139,3 +139,16 @@ def test_return_norm_scale():
     norm = P.ReturnNorm(0.0)  # decay 0: the scale is the current batch's 5-95 percentile range
     assert norm(torch.linspace(0, 0.5, 101)).item() == 1.0  # ranges below 1 are not scaled up
     assert norm(torch.linspace(0, 10, 101)).item() == pytest.approx(9.0, abs=1e-4)
+
+
+def test_bc_loss_is_tanh_gaussian_nll_of_dataset_actions():
+    """bc_loss = -log pi(a_t | s_t, g) of the recorded a_t = action[:, t + 1], checked against torch.distributions."""
+    torch.manual_seed(0)
+    cfg = P.ActorCriticConfig(**P.PRESETS["smoke"])
+    actor = P.Actor(cfg, 6, 6, 3)
+    B, T = 5, 2  # T = 2: t = 0, the goal is frame 1 and the action action[:, 1]
+    feat, goal, action = torch.randn(B, T, 6), torch.randn(B, T, 6), torch.rand(B, T, 3) * 1.6 - 0.8
+    loss, _ = P.bc_loss(actor, feat, goal, action)
+    mean, std = actor.distribution(feat[:, 0], goal[:, 1])
+    dist = TransformedDistribution(Normal(mean, std), [TanhTransform()])
+    assert loss.item() == pytest.approx(-dist.log_prob(action[:, 1]).sum(-1).mean().item(), rel=1e-4)
