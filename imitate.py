@@ -82,14 +82,17 @@ def demo_folder(data, demo, view):
     return folder
 
 
-def body_starts(models, cfgs, rng, device, segments=32):
-    """A pool of D_body posterior states (no gradient) from which imagination starts."""
+def body_pool(models, cfgs, rng, device, segments=32):
+    """D_body segments filtered by the world model (no gradient): their posterior states, flattened, are where
+    imagination starts; the segments themselves feed L_MG's behaviour-cloning term when the run uses one."""
     wc, tc = cfgs["wm"], cfgs["train"]
-    episodes = collect.load_folder(os.path.join(tc.data, tc.env), (wc.obs, "action", "is_first", "p"))
-    batch = train.Segments(episodes, (wc.obs, "action", "is_first"), wc.seq_len).sample(segments, rng, device)
+    keys = (wc.obs, "action", "is_first", "p")
+    episodes = collect.load_folder(os.path.join(tc.data, tc.env), keys)
+    batch = train.Segments(episodes, keys, wc.seq_len).sample(segments, rng, device)
     with torch.no_grad():
         post, _ = models["world_model"].observe(batch[wc.obs], batch["action"], batch["is_first"])
-    return {k: v.flatten(0, 1) for k, v in post.items()}
+        bc = {"feat": models["world_model"].feat(post), "goal": models["goal_vae"].goal(batch["p"]), "action": batch["action"]}
+    return {k: v.flatten(0, 1) for k, v in post.items()}, bc
 
 
 def goal_inference_loss(models, critic_ot, slow_ot, goal, start, demo_p, cfgs, ot_cfg, offsets=None):  # Eq. 5
@@ -109,12 +112,17 @@ def goal_inference_loss(models, critic_ot, slow_ot, goal, start, demo_p, cfgs, o
     return loss, c_loss, {"L_GI": loss.item(), "ot_reward": reward.mean().item(), **{"ot_" + k: v for k, v in c_metrics.items()}}
 
 
-def multi_goal_loss(models, start, goal, body_goals, cfgs):  # Eq. 4 during finetuning
-    """L_MG with the current task goal sg(g) among D_body goals: gradients reach psi (actor, critic) only."""
+def multi_goal_loss(models, start, goal, body_goals, bc, cfgs):  # Eq. 4 during finetuning
+    """L_MG with the current task goal sg(g) among D_body goals (plus the run's behaviour cloning on D_body
+    segments, as in phase 1): gradients reach psi (actor, critic) only."""
+    ac = cfgs["ac"]
     n = len(start["deter"])
     goals = torch.cat([goal.detach().expand(n // 2, -1), body_goals[torch.randint(len(body_goals), (n - n // 2,))]])
-    return policy.policy_losses(models["world_model"], models["dist_net"], models["actor"], models["critic"],
-                                models["slow_critic"], models["return_norm"], start, goals, cfgs["ac"])
+    a_loss, c_loss, metrics = policy.policy_losses(models["world_model"], models["dist_net"], models["actor"], models["critic"],
+                                                   models["slow_critic"], models["return_norm"], start, goals, ac)
+    if ac.bc:
+        a_loss = a_loss + ac.bc * policy.bc_loss(models["actor"], bc["feat"], bc["goal"], bc["action"])[0]
+    return a_loss, c_loss, metrics
 
 
 def finetune_goal(models, cfgs, ic, ot_cfg, goal0, demo_p, seed, device):
@@ -130,7 +138,7 @@ def finetune_goal(models, cfgs, ic, ot_cfg, goal0, demo_p, seed, device):
     opt_ot = torch.optim.Adam(critic_ot.parameters(), lr=ic.critic_lr)
     opt_actor = torch.optim.Adam(models["actor"].parameters(), lr=ac.actor_lr)
     opt_critic = torch.optim.Adam(models["critic"].parameters(), lr=ac.critic_lr)
-    pool = body_starts(models, cfgs, rng, device)
+    pool, bc = body_pool(models, cfgs, rng, device)
     with torch.no_grad():
         body_goals = models["world_model"].feat(pool)
     demo_p = torch.as_tensor(np.stack([p[: min(len(q) for q in demo_p)] for p in demo_p]), device=device)  # (K, M, D)
@@ -154,7 +162,7 @@ def finetune_goal(models, cfgs, ic, ot_cfg, goal0, demo_p, seed, device):
             opt.step()
         policy.ema_update(slow_ot, critic_ot, ac.slow_critic_rate)
         if ic.finetune_policy:
-            a_loss, c_loss, _ = multi_goal_loss(models, body_start, goal, body_goals, cfgs)
+            a_loss, c_loss, _ = multi_goal_loss(models, body_start, goal, body_goals, bc, cfgs)
             for opt, loss in ((opt_actor, a_loss), (opt_critic, c_loss)):
                 opt.zero_grad(set_to_none=True)
                 loss.backward()

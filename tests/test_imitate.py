@@ -31,14 +31,15 @@ def test_goal_gets_only_L_GI_and_policy_only_L_MG(smoke_run):
     feat_dim = models["world_model"].feat_dim
     critic_ot, slow_ot = imitate.policy.make_critics(cfgs["ac"], feat_dim, 0)
     goal = torch.nn.Parameter(torch.randn(feat_dim))
-    pool = imitate.body_starts(models, cfgs, np.random.default_rng(0), "cpu", segments=2)
+    cfgs["ac"].bc = 1.0  # the cpu preset's behaviour-cloning term is part of L_MG too
+    pool, bc = imitate.body_pool(models, cfgs, np.random.default_rng(0), "cpu", segments=2)
     start = {k: v[:6] for k, v in pool.items()}
     demo_p = torch.nn.functional.normalize(torch.randn(2, 12, models["goal_vae"].feat_dim), dim=-1)
     gi, ot_loss, _ = imitate.goal_inference_loss(models, critic_ot, slow_ot, goal, start, demo_p, cfgs, ot_reward.OTConfig(iters=5))
     gi.backward()
     assert goal.grad is not None and goal.grad.abs().sum() > 0
     assert all(p.grad is None for name in ("actor", "world_model", "goal_vae") for p in models[name].parameters())
-    a_loss, c_loss, _ = imitate.multi_goal_loss(models, start, goal, models["world_model"].feat(pool), cfgs)
+    a_loss, c_loss, _ = imitate.multi_goal_loss(models, start, goal, models["world_model"].feat(pool), bc, cfgs)
     goal.grad = None
     (a_loss + c_loss).backward()
     assert goal.grad is None
