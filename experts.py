@@ -14,6 +14,9 @@ Outputs (committed, small, actor only, float16):
   experts/<body>_<task>.pt                 the final policy
   experts/history/<body>_<task>_<step>.pt  snapshots along training: the learning history D_body replays
 Training state (networks, optimisers, replay; not committed) lives in --ckpt-dir and --resume continues.
+A compact copy (networks and temperature, float16, no replay; committed) goes to experts/resume/<body>.pt:
+on a machine without --ckpt-dir's state, --resume starts from it with an empty replay, which it refills
+with the current policy (seed_steps transitions) before updating again.
 """
 import argparse
 import csv
@@ -236,6 +239,9 @@ def select_tasks(state, keep):
     for name, r in (("actor", rows), ("critic", critic_rows), ("critic_target", critic_rows)):
         state[name] = {k: v[r] for k, v in state[name].items()}
     state["log_alpha"] = state["log_alpha"][rows]
+    if "replay" not in state:  # a compact checkpoint: networks only
+        state["tasks"] = [state["tasks"][i] for i in keep]
+        return state
     for name, r in (("actor", rows), ("critic", critic_rows), ("alpha", rows)):
         for adam in state["optim_" + name]["state"].values():
             adam["exp_avg"], adam["exp_avg_sq"] = adam["exp_avg"][r], adam["exp_avg_sq"][r]
@@ -265,9 +271,21 @@ def train(body, tasks, cfg, ckpt_dir, resume):
     }
     target_entropy = -float(action_dim)  # SAC: -|A|
     replay = Replay(n, cfg.steps, obs_dim, action_dim)
-    step = 0
-    ckpt = os.path.join(ckpt_dir, f"{body}.pt")
-    if resume and os.path.exists(ckpt):
+    step, learn_from = 0, cfg.seed_steps
+    ckpt, compact = os.path.join(ckpt_dir, f"{body}.pt"), os.path.join(EXPERT_DIR, "resume", f"{body}.pt")
+    if resume and not os.path.exists(ckpt) and os.path.exists(compact):
+        state = torch.load(compact, map_location="cpu", weights_only=False)
+        if not set(tasks) <= set(state["tasks"]):
+            raise ValueError(f"{compact} holds the tasks {' '.join(state['tasks'])}; pass a subset of them")
+        state = select_tasks(state, [state["tasks"].index(t) for t in tasks])
+        for name, module in (("actor", actor), ("critic", critic), ("critic_target", critic_target)):
+            module.load_state_dict({k: v.float() for k, v in state[name].items()})
+        with torch.no_grad():
+            log_alpha.copy_(state["log_alpha"].float())
+        step = state["step"]
+        learn_from = step + cfg.seed_steps  # refill the replay with the current policy first
+        print(f"resumed the compact {compact} at step {step}: replay and optimisers start empty")
+    elif resume and os.path.exists(ckpt):
         state = torch.load(ckpt, map_location="cpu", weights_only=False)
         changed = [k for k in LEARNING_FIELDS if state["config"][k] != getattr(cfg, k)]
         if changed or not set(tasks) <= set(state["tasks"]):
@@ -298,13 +316,16 @@ def train(body, tasks, cfg, ckpt_dir, resume):
             },
             ckpt,
         )
+        half = lambda module: {k: v.half() for k, v in module.state_dict().items()}
+        _atomic_save({"tasks": list(tasks), "step": step, "actor": half(actor), "critic": half(critic),
+                      "critic_target": half(critic_target), "log_alpha": log_alpha.detach()}, compact)
 
     log_path = os.path.join(ckpt_dir, f"{body}_{'-'.join(tasks)}_log.csv")
     obs = np.stack([env.reset()[0] for env in env_list])
     last_ckpt, t0, losses = time.time(), time.time(), (float("nan"), float("nan"))
     bar = tqdm(total=cfg.steps, initial=step, desc=f"SAC {body} {'/'.join(tasks)}", mininterval=30)
     while step < cfg.steps:
-        if step < cfg.seed_steps:
+        if step < cfg.seed_steps:  # the first run's random phase (a compact resume acts with its policy instead)
             action = rng.uniform(-1, 1, (n, action_dim)).astype(np.float32)
         else:
             with torch.no_grad():
@@ -315,7 +336,7 @@ def train(body, tasks, cfg, ckpt_dir, resume):
         obs = next_obs
         if results[0][3]:  # all envs time out together (500 steps)
             obs = np.stack([env.reset()[0] for env in env_list])
-        if step >= cfg.seed_steps:
+        if step >= learn_from:
             losses = sac_update(actor, critic, critic_target, log_alpha, optims, replay.sample(cfg.batch, rng), cfg, target_entropy)
         step += 1
         bar.update(1)
