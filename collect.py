@@ -272,4 +272,7 @@ def main():
 
 
 if __name__ == "__main__":
-    main()
+    try:
+        main()
+    except (ValueError, FileNotFoundError) as error:  # bad input: one line naming the problem, no traceback
+        raise SystemExit(f"error: {error}")

@@ -65,21 +65,20 @@ COMPONENTS = {
 RESUMABLE = {"steps", "log_every", "checkpoint_every", "eval_goals", "eval_steps", "data", "threads"}
 
 
-def add_config_flags(parser, components):
+def add_config_flags(parser):
     """One flag per field of each component's config (default None: 'not given', so presets apply)."""
-    for name in components:
-        cls, presets, prefix = COMPONENTS[name]
+    for name, (cls, presets, prefix) in COMPONENTS.items():
         for field in dataclasses.fields(cls):
-            flag = "--" + prefix + field.name.replace("_", "-")
             choices = tuple(presets) if field.name == "preset" else None
-            parser.add_argument(flag, dest=f"{name}.{field.name}", type=type(field.default), default=None, choices=choices, metavar=type(field.default).__name__.upper() if not choices else None,
+            parser.add_argument("--" + prefix + field.name.replace("_", "-"), dest=f"{name}.{field.name}", type=type(field.default),
+                                default=None, choices=choices, metavar=None if choices else type(field.default).__name__.upper(),
                                 help=f"{cls.__name__}.{field.name} (default {field.default!r}, or the preset's)")
 
 
-def resolve_configs(args, preset, components):
+def resolve_configs(args, preset):
     """dataclass defaults < the preset's overrides < explicit flags -> {component: config}."""
     out = {}
-    for name in components:
+    for name in COMPONENTS:
         cls, presets, _ = COMPONENTS[name]
         given = {f.name: getattr(args, f"{name}.{f.name}") for f in dataclasses.fields(cls)}
         out[name] = cls(**{**presets[preset], **{k: v for k, v in given.items() if v is not None}})
@@ -312,14 +311,17 @@ def main():
     parser.add_argument("--resume", action="store_true", help="continue runs/<name>/checkpoint.pt")
     parser.add_argument("--obs", dest="wm.obs", choices=("state", "pixels"), default=None, help="world-model input (default: the preset's)")
     parser.add_argument("--run-dir", default=None, help="default runs/<env>_<obs>_<preset>_s<seed>")
-    add_config_flags(parser, COMPONENTS)
+    add_config_flags(parser)
     args = parser.parse_args()
     envs._check_name("body", getattr(args, "train.env") or TrainConfig.env, envs.BODIES)
-    cfgs = resolve_configs(args, getattr(args, "train.preset") or "cpu", COMPONENTS)
+    cfgs = resolve_configs(args, getattr(args, "train.preset") or "cpu")
     tc = cfgs["train"]
     run_dir = args.run_dir or os.path.join("runs", f"{tc.env}_{cfgs['wm'].obs}_{tc.preset}_s{tc.seed}")
     train(cfgs, run_dir, args.resume)
 
 
 if __name__ == "__main__":
-    main()
+    try:
+        main()
+    except (ValueError, FileNotFoundError) as error:  # bad input: one line naming the problem, no traceback
+        raise SystemExit(f"error: {error}")

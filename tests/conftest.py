@@ -24,7 +24,7 @@ def smoke_run(smoke_data, tmp_path_factory):
     """A phase-1 run of the walker with the smoke preset; returns its folder."""
     import train
 
-    cfgs = train.resolve_configs(train_args(data=smoke_data), "smoke", train.COMPONENTS)
+    cfgs = train.resolve_configs(train_args(data=smoke_data), "smoke")
     run_dir = str(tmp_path_factory.mktemp("runs") / "walker_smoke")
     train.train(cfgs, run_dir, resume=False)
     return run_dir

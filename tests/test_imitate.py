@@ -85,3 +85,18 @@ def test_table_keeps_finished_cells(smoke_run, tmp_path):
     assert tables.count("| SE-SV |") == 5 and "| CE-CV |" in tables  # Table 1/2 shape, then one per task
     imitate.table(run, SMOKE, demos_per_cell=2)  # nothing missing: nothing runs again
     assert open(os.path.join(run, "results.jsonl")).read().splitlines() == lines
+
+
+def test_command_line(smoke_run, tmp_path):
+    """`python imitate.py --demo walker_stand --finetune --preset smoke --run ...` prints both scores."""
+    import subprocess
+    import sys
+
+    run = str(tmp_path / "run")
+    shutil.copytree(smoke_run, run)
+    cwd = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+    out = subprocess.run([sys.executable, "imitate.py", "--demo", "walker_stand", "--finetune", "--preset", "smoke", "--run", run],
+                         cwd=cwd, capture_output=True, text=True)
+    assert out.returncode == 0, out.stderr[-2000:]
+    assert "GIIL-ZS walker imitating walker_stand (side view, SE-SV): normalised score" in out.stdout
+    assert "GIIL-FT walker imitating walker_stand" in out.stdout

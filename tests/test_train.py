@@ -25,13 +25,13 @@ def test_smoke_run_writes_checkpoint_metrics_and_goal_reaching(smoke_run):
 def test_resume_continues_and_refuses_to_overwrite(smoke_run, smoke_data, tmp_path):
     run = str(tmp_path / "run")
     shutil.copytree(smoke_run, run)
-    cfgs = train.resolve_configs(train_args(data=smoke_data, steps=8), "smoke", train.COMPONENTS)
+    cfgs = train.resolve_configs(train_args(data=smoke_data, steps=8), "smoke")
     with pytest.raises(SystemExit, match="pass --resume"):
         train.train(cfgs, run, resume=False)
     train.train(cfgs, run, resume=True)
     assert torch.load(os.path.join(run, "checkpoint.pt"), weights_only=False)["step"] == 8
     assert [json.loads(l)["step"] for l in open(os.path.join(run, "metrics.jsonl"))] == [2, 4, 6, 8]
-    other = train.resolve_configs(train_args(data=smoke_data, **{"wm.deter": 32}), "smoke", train.COMPONENTS)
+    other = train.resolve_configs(train_args(data=smoke_data, **{"wm.deter": 32}), "smoke")
     with pytest.raises(SystemExit, match=r"other wm\.deter"):
         train.train(other, run, resume=True)
 
@@ -42,7 +42,7 @@ def test_nan_loss_stops_and_keeps_last_checkpoint(smoke_run, smoke_data, tmp_pat
     before = open(os.path.join(run, "checkpoint.pt"), "rb").read()
     original = train.goal_vae.GoalVAE.loss
     monkeypatch.setattr(train.goal_vae.GoalVAE, "loss", lambda self, p, post: (original(self, p, post)[0] * float("nan"), {}))
-    cfgs = train.resolve_configs(train_args(data=smoke_data, steps=12), "smoke", train.COMPONENTS)
+    cfgs = train.resolve_configs(train_args(data=smoke_data, steps=12), "smoke")
     with pytest.raises(SystemExit, match=r"Eq. 3 goal-VAE loss is nan at update 6.*checkpoint.pt \(update 6\), untouched"):
         train.train(cfgs, run, resume=True)
     assert open(os.path.join(run, "checkpoint.pt"), "rb").read() == before
@@ -63,7 +63,7 @@ def test_paper_preset_builds_pixel_dreamer_sizes_and_updates(smoke_data, tmp_pat
     """The paper's sizes (pixels, GRU 1024, CNN depth 48) run a couple of updates on CPU with a tiny batch."""
     small = {"steps": 2, "policy_start": 1, "eval_goals": 1, "eval_steps": 3, "holdout_every": 3, "log_every": 1,
              "checkpoint_every": 2, "wm.batch": 2, "wm.seq_len": 8, "ac.starts": 4, "ac.horizon": 3, "data": smoke_data}
-    cfgs = train.resolve_configs(train_args(**small), "paper", train.COMPONENTS)
+    cfgs = train.resolve_configs(train_args(**small), "paper")
     assert (cfgs["wm"].obs, cfgs["wm"].deter, cfgs["wm"].cnn_depth) == ("pixels", 1024, 48)
     train.train(cfgs, str(tmp_path / "paper"), resume=False)
     ckpt = torch.load(tmp_path / "paper" / "checkpoint.pt", weights_only=False)
@@ -73,3 +73,21 @@ def test_paper_preset_builds_pixel_dreamer_sizes_and_updates(smoke_data, tmp_pat
 def test_missing_checkpoint_names_the_train_command(tmp_path):
     with pytest.raises(FileNotFoundError, match="python train.py --env walker"):
         train.load_run(str(tmp_path))
+
+
+def test_command_line_runs_and_resumes(smoke_data, tmp_path):
+    """`python train.py --preset smoke`, then `--resume --steps 8`, as a user types them."""
+    import subprocess
+    import sys
+
+    run = str(tmp_path / "cli")
+    base = [sys.executable, "train.py", "--env", "walker", "--preset", "smoke", "--data", smoke_data, "--run-dir", run]
+    cwd = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+    first = subprocess.run(base, cwd=cwd, capture_output=True, text=True)
+    assert first.returncode == 0, first.stderr[-2000:]
+    assert "goal reaching over 2 held-out goals" in first.stdout
+    again = subprocess.run(base + ["--resume", "--steps", "8"], cwd=cwd, capture_output=True, text=True)
+    assert again.returncode == 0 and "resumed" in again.stdout
+    assert torch.load(os.path.join(run, "checkpoint.pt"), weights_only=False)["step"] == 8
+    bad = subprocess.run(base[:3] + ["humanoid"], cwd=cwd, capture_output=True, text=True)
+    assert bad.returncode != 0 and "valid body names are walker, stickman" in bad.stderr
