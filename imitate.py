@@ -222,11 +222,11 @@ def imitate(run_dir, demo, view, finetune, ic, zero_shot=True):
     for k, goal in enumerate(tqdm(goals if zero_shot else [], desc=f"GIIL-ZS {demo} {view}")):
         evaluate("GIIL-ZS", k, goal, demos[k]["pixels"])
     if finetune:
-        state = {k: m.state_dict() for k, m in models.items()}
+        psi_star = {k: {n: t.clone() for n, t in m.state_dict().items()} for k, m in models.items()}  # clones: optimisers step in place
         for seed in range(ic.seeds):
             t0 = time.time()
             for k, m in models.items():  # each seed starts from psi*
-                m.load_state_dict(state[k])
+                m.load_state_dict(psi_star[k])
             goal = finetune_goal(models, cfgs, ic, ot_cfg, goals[0], [d["p"] for d in demos], seed, device)
             evaluate("GIIL-FT", seed, goal, demos[0]["pixels"])
     for method in ("GIIL-ZS", "GIIL-FT"):

@@ -100,3 +100,18 @@ def test_command_line(smoke_run, tmp_path):
     assert out.returncode == 0, out.stderr[-2000:]
     assert "GIIL-ZS walker imitating walker_stand (side view, SE-SV): normalised score" in out.stdout
     assert "GIIL-FT walker imitating walker_stand" in out.stdout
+
+
+def test_every_finetuning_seed_starts_from_the_pretrained_policy(smoke_run, tmp_path, monkeypatch):
+    run = str(tmp_path / "run")
+    shutil.copytree(smoke_run, run)
+    seen, original = [], imitate.finetune_goal
+
+    def recording(models, *args):
+        seen.append(sum(p.sum().item() for p in models["actor"].parameters()))
+        return original(models, *args)
+
+    monkeypatch.setattr(imitate, "finetune_goal", recording)
+    imitate.imitate(run, "walker_run", "side", True, SMOKE, zero_shot=False)
+    pretrained = sum(p.sum().item() for p in train.load_run(run)[1]["actor"].parameters())
+    assert len(seen) == SMOKE.seeds and all(s == pytest.approx(pretrained, abs=1e-6) for s in seen)
