@@ -144,6 +144,7 @@ def run_episode(env, models, goal, steps, obs_key, seed, render=False, random_ac
     wm, actor = models["world_model"], models["actor"]
     device = next(wm.parameters()).device
     rng = np.random.default_rng(seed)
+    torch.manual_seed(seed)  # the posterior samples z_t: the same seed gives the same episode
     obs, _ = env.reset(seed=seed)
     action = np.zeros(env.action_dim, np.float32)
     state, total, frames = None, 0.0, []
