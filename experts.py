@@ -28,10 +28,10 @@ from dataclasses import asdict, dataclass
 import numpy as np
 import torch
 import torch.nn as nn
-import torch.nn.functional as F
 from tqdm import tqdm
 
 import envs
+from policy import tanh_gaussian_log_prob
 
 EXPERT_DIR = os.path.join(os.path.dirname(os.path.abspath(__file__)), "experts")
 
@@ -88,10 +88,7 @@ class Actor(nn.Module):
         std = log_std.clamp(-5, 2).exp()
         u = mean + std * torch.randn_like(mean)
         action = torch.tanh(u)
-        # log N(u; mean, std) minus the tanh Jacobian, log(1 - tanh(u)^2) written stably (SAC App. C)
-        log_prob = (-0.5 * ((u - mean) / std) ** 2 - std.log() - 0.5 * math.log(2 * math.pi)).sum(-1)
-        log_prob = log_prob - (2 * (math.log(2) - u - F.softplus(-2 * u))).sum(-1)
-        return action, log_prob
+        return action, tanh_gaussian_log_prob(u, mean, std)
 
 
 class Critic(nn.Module):

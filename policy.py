@@ -67,6 +67,13 @@ def with_goal(feat, goal):
     return torch.cat([feat, goal.expand(*feat.shape[:-1], -1)], -1)
 
 
+def tanh_gaussian_log_prob(u, mean, std):
+    """log pi(tanh(u)) of a tanh-squashed diagonal Gaussian, summed over actions: log N(u; mean, std) minus the
+    tanh Jacobian log(1 - tanh(u)^2), written stably (SAC, Haarnoja et al. 2018, App. C). (..., A) -> (...)."""
+    log_prob = (-0.5 * ((u - mean) / std) ** 2 - std.log() - 0.5 * math.log(2 * math.pi)).sum(-1)
+    return log_prob - (2 * (math.log(2) - u - F.softplus(-2 * u))).sum(-1)
+
+
 class Actor(nn.Module):
     """pi(a | s, g): a tanh-squashed Gaussian (Dreamer V1's tanh-normal) on [feat, goal]."""
 
@@ -91,10 +98,7 @@ class Actor(nn.Module):
             return torch.tanh(mean), None
         u = mean + std * torch.randn_like(mean)  # reparameterised: the actor loss differentiates through the sample
         action = torch.tanh(u)
-        # log N(u; mean, std) minus the tanh Jacobian log(1 - tanh(u)^2), written stably (SAC, Haarnoja et al. 2018, App. C)
-        log_prob = (-0.5 * ((u - mean) / std) ** 2 - std.log() - 0.5 * math.log(2 * math.pi)).sum(-1)
-        log_prob = log_prob - (2 * (math.log(2) - u - F.softplus(-2 * u))).sum(-1)
-        return action, log_prob
+        return action, tanh_gaussian_log_prob(u, mean, std)
 
 
 class Critic(nn.Module):
@@ -223,8 +227,7 @@ def bc_loss(actor, post_feat, goal_feat, action):
     mean, std = actor.distribution(post_feat[rows, t].detach(), goal_feat[rows, later].detach())
     a = action[rows, t + 1].clamp(-0.999, 0.999)  # tanh is never exactly +-1
     u = torch.atanh(a)
-    log_prob = (-0.5 * ((u - mean) / std) ** 2 - std.log() - 0.5 * math.log(2 * math.pi)).sum(-1) - torch.log1p(-a**2).sum(-1)
-    loss = -log_prob.mean()
+    loss = -tanh_gaussian_log_prob(u, mean, std).mean()
     return loss, {"bc_loss": loss.item()}
 
 
