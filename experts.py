@@ -247,7 +247,32 @@ def select_tasks(state, keep):
     return state
 
 
-def train(body, tasks, cfg, ckpt_dir, resume):
+def copy_member(pairs, tasks, actor, critic, critic_target, log_alpha, optims):
+    """Restart experts from others: for each "dst=src", task dst takes task src's networks, temperature
+    and Adam moments, and goes on learning with its own reward and replay. Used for stickman stand,
+    whose SAC settled on kneeling upright (score ~15): the walk expert already stands (dm_control's stand
+    reward does not penalise moving), so it is a better start than a fresh network."""
+    n = len(tasks)
+    with torch.no_grad():
+        for pair in pairs:
+            dst, _, src = pair.partition("=")
+            if dst not in tasks or src not in tasks:
+                raise ValueError(f"--warm-start {pair}: both tasks must be among --tasks ({' '.join(tasks)})")
+            d, s = tasks.index(dst), tasks.index(src)
+            twin = [(d, s), (d + n, s + n)]  # critics stack the Q1 members, then the Q2 members
+            for module, rows, optim in ((actor, [(d, s)], optims["actor"]), (critic, twin, optims["critic"]), (critic_target, twin, None)):
+                for p in module.parameters():
+                    moments = optim.state.get(p, {}) if optim else {}
+                    for to, frm in rows:
+                        p[to] = p[frm]
+                        for key in ("exp_avg", "exp_avg_sq"):
+                            if key in moments:
+                                moments[key][to] = moments[key][frm]
+            log_alpha[d] = log_alpha[s]
+            print(f"warm start: {dst} restarts from {src}")
+
+
+def train(body, tasks, cfg, ckpt_dir, resume, warm_start=()):
     """SAC for all `tasks` of `body` in lockstep (module docstring)."""
     torch.set_num_threads(1)
     n = len(tasks)
@@ -288,6 +313,11 @@ def train(body, tasks, cfg, ckpt_dir, resume):
         if changed or not set(tasks) <= set(state["tasks"]):
             raise ValueError(f"{ckpt} was trained with other {', '.join(changed) or 'tasks: ' + ' '.join(state['tasks'])}; pass the same flags or delete it")
         if state["tasks"] != list(tasks):
+            stopped = Actor(len(state["tasks"]), obs_dim, action_dim, cfg.hidden)
+            stopped.load_state_dict(state["actor"])
+            for k, task in enumerate(state["tasks"]):  # a stopped expert keeps its latest policy as final
+                if task not in tasks:
+                    save_actor_member(stopped, k, body, task, expert_path(body, task), state["step"])
             state = select_tasks(state, [state["tasks"].index(t) for t in tasks])
         for name, module in (("actor", actor), ("critic", critic), ("critic_target", critic_target)):
             module.load_state_dict(state[name])
@@ -301,6 +331,8 @@ def train(body, tasks, cfg, ckpt_dir, resume):
         step, rng = state["step"], state["rng"]
         torch.set_rng_state(state["torch_rng"])
         print(f"resumed {ckpt} at step {step}")
+    if warm_start:
+        copy_member(warm_start, tasks, actor, critic, critic_target, log_alpha, optims)
 
     def save_checkpoint():
         _atomic_save(
@@ -363,6 +395,8 @@ def main():
     parser.add_argument("--tasks", nargs="+", default=list(envs.TASKS), choices=envs.TASKS)
     parser.add_argument("--ckpt-dir", default="runs/experts", help="training state (not committed)")
     parser.add_argument("--resume", action="store_true", help="continue from --ckpt-dir")
+    parser.add_argument("--warm-start", nargs="+", default=[], metavar="DST=SRC",
+                        help="restart expert DST from expert SRC's networks (see copy_member)")
     parser.add_argument("--eval", action="store_true", help="score the committed final experts: 10 episodes each")
     parser.add_argument("--bounds", action="store_true", help="random-policy returns (Eq. 8's R_min) per body and task")
     for field, value in asdict(ExpertConfig()).items():
@@ -388,7 +422,7 @@ def main():
         parser.error("--body is required to train (or pass --eval)")
     cfg = ExpertConfig(**{f: getattr(args, f) for f in asdict(ExpertConfig())})
     os.makedirs(args.ckpt_dir, exist_ok=True)
-    train(args.body, args.tasks, cfg, args.ckpt_dir, args.resume)
+    train(args.body, args.tasks, cfg, args.ckpt_dir, args.resume, args.warm_start)
 
 
 if __name__ == "__main__":
