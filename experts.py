@@ -396,7 +396,7 @@ def main():
     parser.add_argument("--ckpt-dir", default="runs/experts", help="training state (not committed)")
     parser.add_argument("--resume", action="store_true", help="continue from --ckpt-dir")
     parser.add_argument("--warm-start", nargs="+", default=[], metavar="DST=SRC",
-                        help="restart expert DST from expert SRC's networks (see copy_member)")
+                        help="restart expert DST from expert SRC's networks (copy_member); pass it once, later --resume runs without it")
     parser.add_argument("--eval", action="store_true", help="score the committed final experts: 10 episodes each")
     parser.add_argument("--bounds", action="store_true", help="random-policy returns (Eq. 8's R_min) per body and task")
     for field, value in asdict(ExpertConfig()).items():

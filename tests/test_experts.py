@@ -1,0 +1,58 @@
+"""experts.py: stopping experts on resume keeps their latest policy; --warm-start copies one expert into another."""
+import os
+
+import pytest
+import torch
+
+import experts
+
+TINY = dict(steps=12, seed_steps=4, batch=8, hidden=8, snapshot_every=12, eval_every=10_000, checkpoint_minutes=0.0)
+
+
+@pytest.fixture
+def expert_dir(tmp_path, monkeypatch):
+    monkeypatch.setattr(experts, "EXPERT_DIR", str(tmp_path / "experts"))
+    return tmp_path
+
+
+def test_dropped_task_keeps_latest_policy_and_warm_start_copies(expert_dir):
+    ckpt_dir = str(expert_dir / "ckpt")
+    experts.train("walker", ["stand", "walk", "run"], experts.ExpertConfig(**TINY), ckpt_dir, resume=False)
+    state = torch.load(os.path.join(ckpt_dir, "walker.pt"), weights_only=False)
+    assert state["step"] == 12 and state["tasks"] == ["stand", "walk", "run"]
+
+    # resume without stand: its final file is its step-12 actor
+    experts.train("walker", ["walk", "run"], experts.ExpertConfig(**TINY), ckpt_dir, resume=True)
+    stand = torch.load(experts.expert_path("walker", "stand"))
+    assert stand["step"] == 12
+    for key, value in stand["actor"].items():
+        assert torch.equal(value, state["actor"][key][0:1].half())
+
+
+def test_warm_start_copies_networks_temperature_and_moments():
+    torch.manual_seed(0)
+    tasks, n = ["stand", "walk", "run"], 3
+    actor, critic, target = experts.Actor(n, 5, 2, 8), experts.Critic(n, 5, 2, 8), experts.Critic(n, 5, 2, 8)
+    log_alpha = torch.randn(n, requires_grad=True)
+    optims = {"actor": torch.optim.Adam(actor.parameters()), "critic": torch.optim.Adam(critic.parameters())}
+    (actor(torch.randn(n, 4, 5))[0].sum() + critic(torch.randn(n, 4, 5), torch.randn(n, 4, 2)).sum()).backward()
+    for opt in optims.values():
+        opt.step()  # Adam moments differ per member
+    before = {name: {k: v.clone() for k, v in m.state_dict().items()} for name, m in (("actor", actor), ("critic", critic))}
+    experts.copy_member(["run=walk"], tasks, actor, critic, target, log_alpha, optims)
+    for name, module, heads in (("actor", actor, 1), ("critic", critic, 2), ("target", target, 2)):
+        for key, value in module.state_dict().items():
+            rows = value.unflatten(0, (heads, n))  # the twin critics stack Q1 members, then Q2 members
+            assert torch.equal(rows[:, 2], rows[:, 1]), (name, key)
+            if name in before:
+                assert torch.equal(rows[:, :2], before[name][key].unflatten(0, (heads, n))[:, :2]), (name, key)
+    for p in list(actor.parameters()) + list(critic.parameters()):
+        heads = len(p) // n
+        moment = optims["actor" if heads == 1 else "critic"].state[p]["exp_avg"].unflatten(0, (heads, n))
+        assert torch.equal(moment[:, 2], moment[:, 1])
+    assert log_alpha[2] == log_alpha[1]
+
+
+def test_warm_start_rejects_unknown_task(expert_dir):
+    with pytest.raises(ValueError, match="--warm-start stand=jump: both tasks must be among --tasks"):
+        experts.train("walker", ["stand", "walk"], experts.ExpertConfig(**TINY), str(expert_dir / "c"), resume=False, warm_start=["stand=jump"])
