@@ -91,15 +91,16 @@ def test_bad_actions():
 
 
 def test_jump_rewards_height():
-    """The jump reward grows with torso height above the standing height and saturates JUMP_RISE above it."""
+    """The jump reward grows with torso height above the standing height, saturates JUMP_RISE above it, and counts
+    height only in the air: feet on the floor earn stand / 6."""
     env = envs.make_env("walker", "jump")
     rewards = []
-    for z in (0.0, 0.1, 0.3, 0.5):  # rootz offset from the initial torso height 1.3 m, upright
+    for z in (-0.05, 0.0, 0.1, 0.3, 0.5):  # rootz offset from the initial torso height 1.3 m, upright; at -0.05 the feet touch
         with env.physics.reset_context():
             env.physics.data.qpos[:] = 0
             env.physics.data.qpos[0] = z
         rewards.append(envs.task_reward(env.physics, "walker", "jump"))
-    lift = np.clip((1.3 + np.array([0.0, 0.1, 0.3, 0.5]) - 1.2) / envs.JUMP_RISE, 0, 1)
+    lift = np.clip((1.3 + np.array([-0.05, 0.0, 0.1, 0.3, 0.5]) - 1.2) / envs.JUMP_RISE, 0, 1) * [0, 1, 1, 1, 1]
     assert np.allclose(rewards, (5 * lift + 1) / 6)
 
 

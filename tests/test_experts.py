@@ -56,3 +56,16 @@ def test_warm_start_copies_networks_temperature_and_moments():
 def test_warm_start_rejects_unknown_task(expert_dir):
     with pytest.raises(ValueError, match="--warm-start stand=jump: both tasks must be among --tasks"):
         experts.train("walker", ["stand", "walk"], experts.ExpertConfig(**TINY), str(expert_dir / "c"), resume=False, warm_start=["stand=jump"])
+
+
+def test_compact_state_resumes_tasks_in_any_order(expert_dir):
+    experts.train("walker", ["stand", "walk"], experts.ExpertConfig(**TINY), str(expert_dir / "a"), resume=False)
+    full = torch.load(str(expert_dir / "a" / "walker.pt"), weights_only=False)
+    state = experts.load_compact("walker", ["walk", "stand"])  # per-task files, stacked in the order asked
+    assert state["step"] == 12
+    for key, value in full["actor"].items():
+        assert torch.equal(state["actor"][key], value[[1, 0]].half())
+    for key, value in full["critic"].items():  # Q1 of walk, stand, then Q2 of walk, stand
+        assert torch.equal(state["critic"][key], value[[1, 0, 3, 2]].half())
+    with pytest.raises(FileNotFoundError, match="walker_run.pt"):
+        experts.load_compact("walker", ["walk", "run"])
