@@ -194,6 +194,7 @@ def imitate(run_dir, demo, view, finetune, ic, zero_shot=True):
     demos = collect.load_folder(folder, ("pixels", "p"))
     for k, d in enumerate(demos):
         check_same_encoder(ckpt["encoder"], d["encoder"], os.path.join(folder, f"{k:02d}.npz"))
+    demo_returns = [round(d["return"], 3) for d in demos]  # identifies this D_demo: --table ignores rows of older demos
     where = setting(tc.env, demo_body, view)
     ot_cfg = ot_reward.OTConfig(**ot_reward.PRESETS[ic.preset])
     env = envs.make_env(tc.env, task)
@@ -211,7 +212,7 @@ def imitate(run_dir, demo, view, finetune, ic, zero_shot=True):
             if render:
                 write_video(os.path.join(out_dir, f"{demo}_{view}_{method}_s{seed}.mp4"), video_demo, frames)
         row = {"agent": tc.env, "demo": demo, "view": view, "task": task, "setting": where, "method": method, "seed": seed,
-               "score": float(np.mean(scores)), "episode_scores": scores, "time": round(time.time() - t0, 1)}
+               "score": float(np.mean(scores)), "episode_scores": scores, "time": round(time.time() - t0, 1), "demo_returns": demo_returns}
         with open(results_path, "a") as f:
             f.write(json.dumps(row) + "\n")
         rows.append(row)
@@ -276,17 +277,22 @@ def load_results(run_dir):
 
 
 def table(run_dir, ic, demos_per_cell=10):
-    """Every setting x task for this agent, GIIL-ZS and GIIL-FT; runs only the cells missing from results.jsonl."""
-    agent = train.load_run(run_dir)[0]["train"].env
+    """Every setting x task for this agent, GIIL-ZS and GIIL-FT; runs only the cells missing from results.jsonl.
+    A row counts only if it was made with the demos now on disk (their returns match): regenerating D_demo
+    makes the cells run again instead of mixing old and new results."""
+    cfgs = train.load_run(run_dir)[0]
+    agent, current = cfgs["train"].env, []
     for task in envs.TASKS:
         for where in SETTINGS:
             demo, view = demo_of(agent, task, where)
-            done = load_results(run_dir)
-            count = lambda m: sum(r["demo"] == demo and r["view"] == view and r["method"] == m for r in done)
+            returns = [round(e["return"], 3) for e in collect.load_folder(demo_folder(cfgs["train"].data, demo, view), ())]
+            cell = lambda: [r for r in load_results(run_dir) if r["demo"] == demo and r["view"] == view and r.get("demo_returns") == returns]
+            count = lambda m: sum(r["method"] == m for r in cell())
             zs, ft = count("GIIL-ZS") < demos_per_cell, count("GIIL-FT") < ic.seeds
             if zs or ft:
                 imitate(run_dir, demo, view, ft, ic, zero_shot=zs)
-    text = markdown_tables(agent, load_results(run_dir))
+            current += cell()
+    text = markdown_tables(agent, current)
     path = os.path.join(run_dir, "tables.md")
     with open(path, "w") as f:
         f.write(text)

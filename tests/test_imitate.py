@@ -85,6 +85,16 @@ def test_table_keeps_finished_cells(smoke_run, tmp_path):
     assert tables.count("| SE-SV |") == 5 and "| CE-CV |" in tables  # Table 1/2 shape, then one per task
     imitate.table(run, SMOKE, demos_per_cell=2)  # nothing missing: nothing runs again
     assert open(os.path.join(run, "results.jsonl")).read().splitlines() == lines
+    # rows made with other demos (D_demo regenerated since) do not count: only that cell runs again
+    rows = [json.loads(line) for line in lines]
+    for r in rows:
+        if r["demo"] == "walker_stand" and r["view"] == "side":
+            r["demo_returns"] = [0.0] * len(r["demo_returns"])
+    with open(os.path.join(run, "results.jsonl"), "w") as f:
+        f.write("".join(json.dumps(r) + "\n" for r in rows))
+    imitate.table(run, SMOKE, demos_per_cell=2)
+    new = [json.loads(line) for line in open(os.path.join(run, "results.jsonl")).read().splitlines()[len(lines):]]
+    assert {(r["demo"], r["view"]) for r in new} == {("walker_stand", "side")} and len(new) == 2 + SMOKE.seeds
 
 
 def test_command_line(smoke_run, tmp_path):
