@@ -14,9 +14,10 @@ Outputs (committed, small, actor only, float16):
   experts/<body>_<task>.pt                 the final policy
   experts/history/<body>_<task>_<step>.pt  snapshots along training: the learning history D_body replays
 Training state (networks, optimisers, replay; not committed) lives in --ckpt-dir and --resume continues.
-A compact copy (networks and temperature, float16, no replay; committed) goes to experts/resume/<body>.pt:
-on a machine without --ckpt-dir's state, --resume starts from it with an empty replay, which it refills
-with the current policy (seed_steps transitions) before updating again.
+A compact copy of each task (networks and temperature, float16, no replay; committed) goes to
+experts/resume/<body>_<task>.pt: on a machine without --ckpt-dir's state, --resume starts from them with an
+empty replay, which it refills with the current policy (seed_steps transitions) before updating again.
+One file per task, so experts of one body may train in separate processes.
 """
 import argparse
 import csv
@@ -228,6 +229,49 @@ def evaluate(body, task, episodes=10, seed=1000, step=None):
     return np.array([episode_returns(actor, [env], seed + k)[0] for k in range(episodes)])
 
 
+@torch.no_grad()
+def jump_stats(body, episodes=10, seed=1000, step=None):
+    """What the jump expert does ("visibly jumps": the torso well above standing height, repeatedly), measured on
+    the physics at every control step of its deterministic episodes, averaged over episodes:
+    (share of steps with no body geom touching the floor, take-offs per episode = ground-to-air transitions
+    that stay airborne >= 2 steps, highest torso rise above the standing height in metres)."""
+    actor, env = load_expert(body, "jump", step), envs.make_env(body, "jump")
+    model = env.physics.model
+    floor = model.geom("floor").id
+    airborne, takeoffs, peaks = [], [], []
+    for k in range(episodes):
+        obs, flying, heights = env.reset(seed=seed + k)[0], [], []
+        for _ in range(envs.EPISODE_STEPS):
+            action = actor(torch.as_tensor(obs)[None, None], deterministic=True)[0][0, 0].double().numpy()
+            obs = env.step(action)[0]
+            contacts = env.physics.data.contact[: env.physics.data.ncon]
+            flying.append(not np.any((contacts.geom1 == floor) | (contacts.geom2 == floor)))
+            heights.append(env.physics.named.data.xpos["torso", "z"])
+        f = np.array(flying)
+        airborne.append(f.mean())
+        takeoffs.append(int(np.sum(~f[:-2] & f[1:-1] & f[2:])))
+        peaks.append(max(heights) - envs.STAND_HEIGHT[body])
+    return float(np.mean(airborne)), float(np.mean(takeoffs)), float(np.mean(peaks))
+
+
+def compact_path(body, task):
+    return os.path.join(EXPERT_DIR, "resume", f"{body}_{task}.pt")
+
+
+def load_compact(body, tasks):
+    """The compact states of `tasks` stacked into one ensemble's state dicts (module docstring)."""
+    parts = []
+    for task in tasks:
+        if not os.path.exists(compact_path(body, task)):
+            raise FileNotFoundError(f"no compact state at {compact_path(body, task)}: train that expert from scratch with --ckpt-dir and without --resume")
+        parts.append(torch.load(compact_path(body, task), map_location="cpu", weights_only=False))
+    state = {"step": min(p["step"] for p in parts), "log_alpha": torch.stack([p["log_alpha"] for p in parts]),
+             "actor": {k: torch.cat([p["actor"][k] for p in parts]) for k in parts[0]["actor"]}}
+    for name in ("critic", "critic_target"):  # each file holds [Q1, Q2] of its task; the ensemble wants Q1s, then Q2s
+        state[name] = {k: torch.cat([p[name][k][q : q + 1] for q in (0, 1) for p in parts]) for k in parts[0][name]}
+    return state
+
+
 def select_tasks(state, keep):
     """A training checkpoint restricted to the tasks at positions `keep`: resuming with fewer --tasks stops
     the experts that are done, and the others go on faster (every ensemble tensor is sliced per member)."""
@@ -236,9 +280,6 @@ def select_tasks(state, keep):
     for name, r in (("actor", rows), ("critic", critic_rows), ("critic_target", critic_rows)):
         state[name] = {k: v[r] for k, v in state[name].items()}
     state["log_alpha"] = state["log_alpha"][rows]
-    if "replay" not in state:  # a compact checkpoint: networks only
-        state["tasks"] = [state["tasks"][i] for i in keep]
-        return state
     for name, r in (("actor", rows), ("critic", critic_rows), ("alpha", rows)):
         for adam in state["optim_" + name]["state"].values():
             adam["exp_avg"], adam["exp_avg_sq"] = adam["exp_avg"][r], adam["exp_avg_sq"][r]
@@ -294,19 +335,16 @@ def train(body, tasks, cfg, ckpt_dir, resume, warm_start=()):
     target_entropy = -float(action_dim)  # SAC: -|A|
     replay = Replay(n, cfg.steps, obs_dim, action_dim)
     step, learn_from = 0, cfg.seed_steps
-    ckpt, compact = os.path.join(ckpt_dir, f"{body}.pt"), os.path.join(EXPERT_DIR, "resume", f"{body}.pt")
-    if resume and not os.path.exists(ckpt) and os.path.exists(compact):
-        state = torch.load(compact, map_location="cpu", weights_only=False)
-        if not set(tasks) <= set(state["tasks"]):
-            raise ValueError(f"{compact} holds the tasks {' '.join(state['tasks'])}; pass a subset of them")
-        state = select_tasks(state, [state["tasks"].index(t) for t in tasks])
+    ckpt = os.path.join(ckpt_dir, f"{body}.pt")
+    if resume and not os.path.exists(ckpt) and os.path.exists(compact_path(body, tasks[0])):
+        state = load_compact(body, tasks)
         for name, module in (("actor", actor), ("critic", critic), ("critic_target", critic_target)):
             module.load_state_dict({k: v.float() for k, v in state[name].items()})
         with torch.no_grad():
             log_alpha.copy_(state["log_alpha"].float())
         step = state["step"]
         learn_from = step + cfg.seed_steps  # refill the replay with the current policy first
-        print(f"resumed the compact {compact} at step {step}: replay and optimisers start empty")
+        print(f"resumed the compact experts/resume/{body}_<task>.pt at step {step}: replay and optimisers start empty")
     elif resume and os.path.exists(ckpt):
         state = torch.load(ckpt, map_location="cpu", weights_only=False)
         changed = [k for k in LEARNING_FIELDS if state["config"][k] != getattr(cfg, k)]
@@ -316,7 +354,8 @@ def train(body, tasks, cfg, ckpt_dir, resume, warm_start=()):
             stopped = Actor(len(state["tasks"]), obs_dim, action_dim, cfg.hidden)
             stopped.load_state_dict(state["actor"])
             for k, task in enumerate(state["tasks"]):  # a stopped expert keeps its latest policy as final
-                if task not in tasks:
+                final = expert_path(body, task)
+                if task not in tasks and (not os.path.exists(final) or torch.load(final)["step"] < state["step"]):
                     save_actor_member(stopped, k, body, task, expert_path(body, task), state["step"])
             state = select_tasks(state, [state["tasks"].index(t) for t in tasks])
         for name, module in (("actor", actor), ("critic", critic), ("critic_target", critic_target)):
@@ -345,9 +384,10 @@ def train(body, tasks, cfg, ckpt_dir, resume, warm_start=()):
             },
             ckpt,
         )
-        half = lambda module: {k: v.half() for k, v in module.state_dict().items()}
-        _atomic_save({"tasks": list(tasks), "step": step, "actor": half(actor), "critic": half(critic),
-                      "critic_target": half(critic_target), "log_alpha": log_alpha.detach()}, compact)
+        member = lambda module, rows: {key: v[rows].half() for key, v in module.state_dict().items()}
+        for k, task in enumerate(tasks):
+            _atomic_save({"task": task, "step": step, "actor": member(actor, [k]), "critic": member(critic, [k, k + n]),
+                          "critic_target": member(critic_target, [k, k + n]), "log_alpha": log_alpha.detach()[k].clone()}, compact_path(body, task))
 
     log_path = os.path.join(ckpt_dir, f"{body}_{'-'.join(tasks)}_log.csv")
     obs = np.stack([env.reset()[0] for env in env_list])
@@ -402,6 +442,7 @@ def main():
     for field, value in asdict(ExpertConfig()).items():
         parser.add_argument("--" + field.replace("_", "-"), type=type(value), default=value)
     args = parser.parse_args()
+    torch.set_num_threads(1)  # small MLPs: one thread is fastest, and far faster when the cores are shared (train.py)
     if args.bounds:
         print("| body | task | random return (mean +- std of 10) |\n|---|---|---|")
         for body in [args.body] if args.body else envs.BODIES:
@@ -411,12 +452,13 @@ def main():
         return
     if args.eval:
         bodies = [args.body] if args.body else envs.BODIES
-        print("| body | task | return (mean of 10) | normalised score | training steps |\n|---|---|---|---|---|")
+        print("| body | task | return (mean of 10) | normalised score | training steps | jump: airborne steps, take-offs/episode, peak rise |\n|---|---|---|---|---|---|")
         for body in bodies:
             for task in args.tasks:
                 returns = evaluate(body, task)
                 step = torch.load(expert_path(body, task), map_location="cpu")["step"]
-                print(f"| {body} | {task} | {returns.mean():.1f} | {envs.normalized_score(task, returns.mean()):.1f} | {step} |")
+                jump = "%.0f%%, %.1f, %.2f m" % (lambda a, t, p: (100 * a, t, p))(*jump_stats(body)) if task == "jump" else ""
+                print(f"| {body} | {task} | {returns.mean():.1f} | {envs.normalized_score(task, returns.mean()):.1f} | {step} | {jump} |")
         return
     if args.body is None:
         parser.error("--body is required to train (or pass --eval)")
