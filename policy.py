@@ -218,14 +218,16 @@ def actor_loss(returns, log_prob, return_norm, entropy_scale):  # Eq. 4
 def bc_loss(actor, post_feat, goal_feat, action):
     """Hindsight goal-conditioned behaviour cloning (ours, a deviation; GCSL, Ghosh et al. 2021): D_body has no task
     labels, but each of its actions a_t reaches what its own episode shows later, so -log pi(a_t | s_t, g) with g the
-    goal encoder's state of a later frame of the same segment. post_feat (B, T, F) posterior feats, goal_feat (B, T, F)
-    goal-encoder goals of every frame, action (B, T, A) with action[:, t] = a_{t-1} (world_model.py's alignment)."""
+    goal encoder's state of a later frame of the same segment, for every step t of every segment (each with its own
+    random later frame). post_feat (B, T, F) posterior feats, goal_feat (B, T, F) goal-encoder goals of every frame,
+    action (B, T, A) with action[:, t] = a_{t-1} (world_model.py's alignment)."""
     B, T, _ = post_feat.shape
-    t = torch.randint(T - 1, (B,), device=post_feat.device)  # s_t, acted on with a_t = action[:, t + 1]
-    later = t + 1 + (torch.rand(B, device=post_feat.device) * (T - 1 - t)).long()  # a frame in (t, T - 1]
-    rows = torch.arange(B, device=post_feat.device)
-    mean, std = actor.distribution(post_feat[rows, t].detach(), goal_feat[rows, later].detach())
-    a = action[rows, t + 1].clamp(-0.999, 0.999)  # tanh is never exactly +-1
+    device = post_feat.device
+    t = torch.arange(T - 1, device=device).expand(B, -1)  # (B, T - 1): s_t, acted on with a_t = action[:, t + 1]
+    later = t + 1 + (torch.rand(B, T - 1, device=device) * (T - 1 - t)).long()  # a frame in (t, T - 1]
+    rows = torch.arange(B, device=device)[:, None].expand(-1, T - 1)
+    mean, std = actor.distribution(post_feat[rows, t].flatten(0, 1).detach(), goal_feat[rows, later].flatten(0, 1).detach())
+    a = action[rows, t + 1].flatten(0, 1).clamp(-0.999, 0.999)  # tanh is never exactly +-1
     u = torch.atanh(a)
     loss = -tanh_gaussian_log_prob(u, mean, std).mean()
     return loss, {"bc_loss": loss.item()}
