@@ -20,7 +20,8 @@ GenRL), because the torsos differ in length:
 Height alone is not enough: our first jump (lift from torso height alone) was maximised by standing still
 on tiptoe with straight legs (torso 0.33 m above H, airborne 4% of the time, `experts.py --eval`). With
 lift counted only in the air, standing earns stand / 6 whatever the posture, and the rest of the
-reward needs the body to leave the ground upright, high, again and again.
+reward needs the body to leave the ground upright, high, again and again. (Our SAC experts learnt a
+wind-up of their own: they drop low, then spring up into the air with the torso upright.)
 
 Rendering bypasses dm_control's renderer: one `mujoco.Renderer` per env with shadows, reflections
 and the skybox turned off (they are most of the cost of a 64x64 frame on a software GL).

@@ -234,24 +234,27 @@ def jump_stats(body, episodes=10, seed=1000, step=None):
     """What the jump expert does ("visibly jumps": the torso well above standing height, repeatedly), measured on
     the physics at every control step of its deterministic episodes, averaged over episodes:
     (share of steps with no body geom touching the floor, take-offs per episode = ground-to-air transitions
-    that stay airborne >= 2 steps, highest torso rise above the standing height in metres)."""
+    that stay airborne >= 2 steps, highest torso rise above the standing height in metres, mean torso
+    uprightness cos(pitch) over the airborne steps: 1 = vertical, 0 = horizontal)."""
     actor, env = load_expert(body, "jump", step), envs.make_env(body, "jump")
     model = env.physics.model
     floor = model.geom("floor").id
-    airborne, takeoffs, peaks = [], [], []
+    airborne, takeoffs, peaks, upright = [], [], [], []
     for k in range(episodes):
-        obs, flying, heights = env.reset(seed=seed + k)[0], [], []
+        obs, flying, heights, zz = env.reset(seed=seed + k)[0], [], [], []
         for _ in range(envs.EPISODE_STEPS):
             action = actor(torch.as_tensor(obs)[None, None], deterministic=True)[0][0, 0].double().numpy()
             obs = env.step(action)[0]
             contacts = env.physics.data.contact[: env.physics.data.ncon]
             flying.append(not np.any((contacts.geom1 == floor) | (contacts.geom2 == floor)))
             heights.append(env.physics.named.data.xpos["torso", "z"])
+            zz.append(env.physics.named.data.xmat["torso", "zz"])
         f = np.array(flying)
+        upright.append(np.mean(np.array(zz)[f]) if f.any() else np.nan)
         airborne.append(f.mean())
         takeoffs.append(int(np.sum(~f[:-2] & f[1:-1] & f[2:])))
         peaks.append(max(heights) - envs.STAND_HEIGHT[body])
-    return float(np.mean(airborne)), float(np.mean(takeoffs)), float(np.mean(peaks))
+    return float(np.mean(airborne)), float(np.mean(takeoffs)), float(np.mean(peaks)), float(np.nanmean(upright))
 
 
 def compact_path(body, task):
@@ -452,12 +455,12 @@ def main():
         return
     if args.eval:
         bodies = [args.body] if args.body else envs.BODIES
-        print("| body | task | return (mean of 10) | normalised score | training steps | jump: airborne steps, take-offs/episode, peak rise |\n|---|---|---|---|---|---|")
+        print("| body | task | return (mean of 10) | normalised score | training steps | jump: airborne steps, take-offs/episode, peak rise, upright in the air |\n|---|---|---|---|---|---|")
         for body in bodies:
             for task in args.tasks:
                 returns = evaluate(body, task)
                 step = torch.load(expert_path(body, task), map_location="cpu")["step"]
-                jump = "%.0f%%, %.1f, %.2f m" % (lambda a, t, p: (100 * a, t, p))(*jump_stats(body)) if task == "jump" else ""
+                jump = "%.0f%%, %.1f, %.2f m, %.2f" % (lambda a, t, p, u: (100 * a, t, p, u))(*jump_stats(body)) if task == "jump" else ""
                 print(f"| {body} | {task} | {returns.mean():.1f} | {envs.normalized_score(task, returns.mean()):.1f} | {step} | {jump} |")
         return
     if args.body is None:
