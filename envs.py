@@ -18,7 +18,7 @@ GenRL), because the torsos differ in length:
   jump (ours, no public definition exists) = stand * (5 * lift + 1) / 6, lift = clip((torso_z - H) /
         JUMP_RISE, 0, 1) while no part of the body touches the floor, else 0; JUMP_RISE = 0.4 m.
 Height alone is not enough: our first jump (lift from torso height alone) was maximised by standing still
-on tiptoe with straight legs (torso 0.33 m above H, airborne 4% of the time, `experts.py --eval`). With
+on tiptoe with straight legs (torso 0.33 m above H, airborne 4% of the time: experts.jump_stats). With
 lift counted only in the air, standing earns stand / 6 whatever the posture, and the rest of the
 reward needs the body to leave the ground upright, high, again and again. (Our SAC experts learnt a
 wind-up of their own: they drop low, then spring up into the air with the torso upright.)
@@ -52,11 +52,10 @@ MOVE_SPEED = {"stand": 0.0, "walk": 1.0, "run": 8.0, "jump": 0.0}  # m/s, dm_con
 JUMP_RISE = 0.4  # m above the standing height for the full jump reward (our definition)
 
 # App. D, Table 3: (min, max) return used by Eq. 8. Jump has no public definition; ours differs from the
-# paper's, so its bounds are measured on our task: min = the random policy's mean return over both bodies
-# (`python experts.py --bounds`: walker 24.3, stickman 22.7), max = our jump expert's return once it is
-# final (experts.py); until then Table 3's max stands in, as SCORE_SOURCE says.
-SCORE_BOUNDS = {"stand": (150.0, 970.0), "walk": (45.0, 960.0), "run": (30.0, 800.0), "jump": (23.5, 650.0)}
-SCORE_SOURCE = {"stand": "Table 3", "walk": "Table 3", "run": "Table 3", "jump": "min: random policy (measured); max: Table 3 until the jump expert is final"}
+# paper's, so its bounds are measured on our task, like Table 3's, over both bodies: min = the random policy's
+# mean return (`python experts.py --bounds`: walker 24.3, stickman 22.7), max = our final jump experts' mean
+# return (`python experts.py --eval --tasks jump`: walker 425.4, stickman 460.4).
+SCORE_BOUNDS = {"stand": (150.0, 970.0), "walk": (45.0, 960.0), "run": (30.0, 800.0), "jump": (23.5, 442.9)}
 
 # Side camera: dm_control's walker camera. Diagonal camera (new, paper Fig. 2): behind the body at 45
 # degrees in the horizontal plane, same distance (2 m) and the same 30 degree downward tilt, tracking

@@ -50,6 +50,7 @@ class ExpertConfig:
     snapshot_every: int = 50_000  # agent steps between history snapshots (100 episodes)
     eval_every: int = 10_000  # agent steps between 1-episode deterministic evaluations
     checkpoint_minutes: float = 15.0  # wall-clock between full checkpoints (replay included)
+    final_episodes: int = 10  # episodes that score each snapshot; the best becomes the final expert (keep_best)
     seed: int = 0
 
 
@@ -164,11 +165,29 @@ def expert_path(body, task, step=None):
     return os.path.join(EXPERT_DIR, "history", f"{body}_{task}_{step:07d}.pt")
 
 
-def save_actor_member(actor, member, body, task, path, step):
-    """Write one task's actor, float16, as a 1-member Actor state dict."""
+def save_actor_member(actor, member, body, task, path, step, score=None):
+    """Write one task's actor, float16, as a 1-member Actor state dict (with its --eval score if known)."""
     state = {k: v[member : member + 1].detach().half() for k, v in actor.state_dict().items()}
-    meta = {"body": body, "task": task, "step": step, "hidden": actor.net[0].w.shape[2]}
+    meta = {"body": body, "task": task, "step": step, "hidden": actor.net[0].w.shape[2], "score": score}
     _atomic_save({"actor": state, **meta}, path)
+
+
+def keep_best(actor, body, tasks, step, episodes):
+    """The final expert of each task is its best snapshot: member k of `actor` replaces experts/<body>_<task>.pt
+    when its mean normalised score over `episodes` deterministic episodes (the seeds of `evaluate`, so the same
+    figure as --eval) beats the saved one's. SAC's return can drop after a peak (stickman stand went from 100
+    to 14); the latest snapshot is not always the best."""
+    env_list = [envs.make_env(body, task) for task in tasks]
+    returns = np.mean([episode_returns(actor, env_list, 1000 + k) for k in range(episodes)], 0)
+    for k, task in enumerate(tasks):
+        score, final = float(envs.normalized_score(task, returns[k])), expert_path(body, task)
+        saved = torch.load(final) if os.path.exists(final) else {"score": -np.inf}
+        best = saved.get("score")
+        if best is None:  # a final written before scores were stored: score it once, and store the score
+            best = float(envs.normalized_score(task, evaluate(body, task, episodes).mean()))
+            _atomic_save({**saved, "score": best}, final)
+        if score > best:
+            save_actor_member(actor, k, body, task, final, step, score)
 
 
 def _atomic_save(obj, path):
@@ -354,12 +373,10 @@ def train(body, tasks, cfg, ckpt_dir, resume, warm_start=()):
         if changed or not set(tasks) <= set(state["tasks"]):
             raise ValueError(f"{ckpt} was trained with other {', '.join(changed) or 'tasks: ' + ' '.join(state['tasks'])}; pass the same flags or delete it")
         if state["tasks"] != list(tasks):
-            stopped = Actor(len(state["tasks"]), obs_dim, action_dim, cfg.hidden)
-            stopped.load_state_dict(state["actor"])
-            for k, task in enumerate(state["tasks"]):  # a stopped expert keeps its latest policy as final
-                final = expert_path(body, task)
-                if task not in tasks and (not os.path.exists(final) or torch.load(final)["step"] < state["step"]):
-                    save_actor_member(stopped, k, body, task, expert_path(body, task), state["step"])
+            dropped = [k for k, task in enumerate(state["tasks"]) if task not in tasks]
+            stopped = Actor(len(dropped), obs_dim, action_dim, cfg.hidden)
+            stopped.load_state_dict({k: v[dropped] for k, v in state["actor"].items()})
+            keep_best(stopped, body, [state["tasks"][k] for k in dropped], state["step"], cfg.final_episodes)  # a stopped expert's latest policy may be its best
             state = select_tasks(state, [state["tasks"].index(t) for t in tasks])
         for name, module in (("actor", actor), ("critic", critic), ("critic_target", critic_target)):
             module.load_state_dict(state[name])
@@ -415,7 +432,7 @@ def train(body, tasks, cfg, ckpt_dir, resume, warm_start=()):
         if step % cfg.snapshot_every == 0 or step == cfg.steps:
             for k, task in enumerate(tasks):
                 save_actor_member(actor, k, body, task, expert_path(body, task, step), step)
-                save_actor_member(actor, k, body, task, expert_path(body, task), step)
+            keep_best(actor, body, tasks, step, cfg.final_episodes)
         if step % cfg.eval_every == 0:
             scores = [float(envs.normalized_score(t, r)) for t, r in zip(tasks, episode_returns(actor, eval_envs, 10_000 + step))]
             new = not os.path.exists(log_path)
@@ -441,6 +458,7 @@ def main():
     parser.add_argument("--warm-start", nargs="+", default=[], metavar="DST=SRC",
                         help="restart expert DST from expert SRC's networks (copy_member); pass it once, later --resume runs without it")
     parser.add_argument("--eval", action="store_true", help="score the committed final experts: 10 episodes each")
+    parser.add_argument("--pick-best", action="store_true", help="make the best snapshot of experts/history each task's final expert (keep_best)")
     parser.add_argument("--bounds", action="store_true", help="random-policy returns (Eq. 8's R_min) per body and task")
     for field, value in asdict(ExpertConfig()).items():
         parser.add_argument("--" + field.replace("_", "-"), type=type(value), default=value)
@@ -452,6 +470,14 @@ def main():
             for task in args.tasks:
                 returns = random_returns(body, task)
                 print(f"| {body} | {task} | {returns.mean():.1f} +- {returns.std():.1f} |")
+        return
+    if args.pick_best:
+        for body in [args.body] if args.body else envs.BODIES:
+            for task in args.tasks:
+                for step in tqdm(history_steps(body, task), desc=f"{body} {task} snapshots"):
+                    keep_best(load_expert(body, task, step), body, [task], step, args.final_episodes)
+                saved = torch.load(expert_path(body, task))
+                print(f"{body} {task}: final = step {saved['step']}, score {saved['score']:.1f}")
         return
     if args.eval:
         bodies = [args.body] if args.body else envs.BODIES

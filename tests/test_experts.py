@@ -6,7 +6,7 @@ import torch
 
 import experts
 
-TINY = dict(steps=12, seed_steps=4, batch=8, hidden=8, snapshot_every=12, eval_every=10_000, checkpoint_minutes=0.0)
+TINY = dict(steps=12, seed_steps=4, batch=8, hidden=8, snapshot_every=12, eval_every=10_000, checkpoint_minutes=0.0, final_episodes=1)
 
 
 @pytest.fixture
@@ -69,3 +69,17 @@ def test_compact_state_resumes_tasks_in_any_order(expert_dir):
         assert torch.equal(state["critic"][key], value[[1, 0, 3, 2]].half())
     with pytest.raises(FileNotFoundError, match="walker_run.pt"):
         experts.load_compact("walker", ["walk", "run"])
+
+
+def test_final_expert_is_the_best_snapshot(expert_dir):
+    torch.manual_seed(0)
+    actor = experts.Actor(1, 24, 6, 8)
+    experts.save_actor_member(actor, 0, "walker", "stand", experts.expert_path("walker", "stand"), 100, score=1e9)
+    experts.keep_best(actor, "walker", ["stand"], 200, episodes=1)  # worse than the saved one: kept
+    assert torch.load(experts.expert_path("walker", "stand"))["step"] == 100
+    experts.save_actor_member(actor, 0, "walker", "stand", experts.expert_path("walker", "stand"), 100, score=-1e9)
+    experts.keep_best(actor, "walker", ["stand"], 200, episodes=1)  # better: replaced, with its --eval score
+    saved = torch.load(experts.expert_path("walker", "stand"))
+    assert saved["step"] == 200
+    evaluated = experts.envs.normalized_score("stand", experts.evaluate("walker", "stand", 1).mean())  # of the float16 copy
+    assert saved["score"] == pytest.approx(float(evaluated), abs=0.1)
