@@ -175,7 +175,7 @@ def save_actor_member(actor, member, body, task, path, step, score=None):
 def keep_best(actor, body, tasks, step, episodes):
     """The final expert of each task is its best snapshot: member k of `actor` replaces experts/<body>_<task>.pt
     when its mean normalised score over `episodes` deterministic episodes (the seeds of `evaluate`, so the same
-    figure as --eval) beats the saved one's. SAC's return can drop after a peak (stickman stand went from 100
+    figure as --eval) beats the saved one's. SAC's return can drop after a peak (stickman stand went from 94
     to 14); the latest snapshot is not always the best."""
     env_list = [envs.make_env(body, task) for task in tasks]
     returns = np.mean([episode_returns(actor, env_list, 1000 + k) for k in range(episodes)], 0)
@@ -256,8 +256,7 @@ def jump_stats(body, episodes=10, seed=1000, step=None):
     that stay airborne >= 2 steps, highest torso rise above the standing height in metres, mean torso
     uprightness cos(pitch) over the airborne steps: 1 = vertical, 0 = horizontal)."""
     actor, env = load_expert(body, "jump", step), envs.make_env(body, "jump")
-    model = env.physics.model
-    floor = model.geom("floor").id
+    floor = env.physics.model.geom("floor").id
     airborne, takeoffs, peaks, upright = [], [], [], []
     for k in range(episodes):
         obs, flying, heights, zz = env.reset(seed=seed + k)[0], [], [], []
@@ -486,7 +485,10 @@ def main():
             for task in args.tasks:
                 returns = evaluate(body, task)
                 step = torch.load(expert_path(body, task), map_location="cpu")["step"]
-                jump = "%.0f%%, %.1f, %.2f m, %.2f" % (lambda a, t, p, u: (100 * a, t, p, u))(*jump_stats(body)) if task == "jump" else ""
+                jump = ""
+                if task == "jump":
+                    airborne, takeoffs, peak, upright = jump_stats(body)
+                    jump = f"{100 * airborne:.0f}%, {takeoffs:.1f}, {peak:.2f} m, {upright:.2f}"
                 print(f"| {body} | {task} | {returns.mean():.1f} | {envs.normalized_score(task, returns.mean()):.1f} | {step} | {jump} |")
         return
     if args.body is None:
