@@ -51,6 +51,7 @@ class ImitateConfig:
     starts: int = 64  # imagined trajectories per L_GI update (ours)
     starts_from: str = "body"  # 'body' | 'demo' (module docstring)
     goal_lr: float = 3e-3  # Adam on g (ours)
+    critic_warmup: int = 0  # first updates that train V_ot only, g held (ours): an untrained V_ot moves g at random
     critic_lr: float = 8e-5  # V_ot, as the phase-1 critic (Dreamer V1)
     finetune_policy: int = 1  # 1: psi jointly finetuned by L_MG (Sec. 4); 0: the policy stays exactly psi*
     demo_stride: int = 5  # demo frames used per update: every 5th from a random offset (1 = all)
@@ -156,7 +157,8 @@ def finetune_goal(models, cfgs, ic, ot_cfg, goal0, demo_p, seed, device):
                 start = models["goal_vae"].encode(demo_p[torch.randint(len(demo_p), (ic.starts,)), t0])
             start, offsets, demo = {k: start[k] for k in ("deter", "stoch", "mean", "std")}, t0 + 1, demo_p
         gi_loss, ot_loss, metrics = goal_inference_loss(models, critic_ot, slow_ot, goal, start, demo, cfgs, ot_cfg, offsets)
-        for opt, loss in ((opt_goal, gi_loss), (opt_ot, ot_loss)):
+        warming_up = step < ic.critic_warmup
+        for opt, loss in [(opt_ot, ot_loss)] if warming_up else [(opt_goal, gi_loss), (opt_ot, ot_loss)]:
             opt.zero_grad(set_to_none=True)
             loss.backward()
             opt.step()

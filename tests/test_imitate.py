@@ -125,3 +125,17 @@ def test_every_finetuning_seed_starts_from_the_pretrained_policy(smoke_run, tmp_
     imitate.imitate(run, "walker_run", "side", True, SMOKE, zero_shot=False)
     pretrained = sum(p.sum().item() for p in train.load_run(run)[1]["actor"].parameters())
     assert len(seen) == SMOKE.seeds and all(s == pytest.approx(pretrained, abs=1e-6) for s in seen)
+
+
+def test_critic_warmup_holds_the_goal(smoke_run):
+    """During the first critic_warmup updates only V_ot learns: g comes back unchanged; after them g moves."""
+    import dataclasses
+
+    cfgs, models, _ = train.load_run(smoke_run)
+    goal0 = torch.randn(models["world_model"].feat_dim)
+    demo_p = [np.random.default_rng(k).standard_normal((12, models["goal_vae"].feat_dim)).astype(np.float32) for k in range(2)]
+    ot_cfg = ot_reward.OTConfig(iters=5)
+    held = imitate.finetune_goal(models, cfgs, dataclasses.replace(SMOKE, critic_warmup=SMOKE.steps), ot_cfg, goal0, demo_p, 0, "cpu")
+    assert torch.equal(held, goal0)
+    moved = imitate.finetune_goal(models, cfgs, dataclasses.replace(SMOKE, critic_warmup=SMOKE.steps - 1), ot_cfg, goal0, demo_p, 0, "cpu")
+    assert not torch.equal(moved, goal0)
