@@ -10,11 +10,11 @@ GIIL-FT  from the first demo's zero-shot goal, g is optimised by L_GI (Eq. 5): i
          out of L_MG and psi out of L_GI. 3 seeds.
 
 Choices where the paper is silent (README, "Deviations"):
-* start states of the goal-inference imagination: `--starts-from body` (default) draws them from the
-  world model's posterior on D_body segments: states the agent can be in, from which the policy must
-  perform the task; `demo` maps demo features into the latent space with the goal encoder q(s | p_t),
-  the embodiment-agnostic reading of Eq. 5's D_demo o q_phi, and matches the imagined steps against the
-  demo frames that follow (ot_reward's windowed matching).
+* start states of the goal-inference imagination: `--starts-from demo` (default) maps demo features into
+  the latent space with the goal encoder q(s | p_t), Eq. 5's D_demo o q_phi read as embodiment-agnostic
+  start states, and matches the imagined steps against the demo frames that follow (ot_reward's windowed
+  matching); `body` draws them from the world model's posterior on D_body segments: states the agent can
+  be in, from which the policy must perform the task (our first default; worse in README's measurements).
 * a segment against a 500-step demo: whole-demo OT (ot_reward.py) against every demo, the best one
   counting (ROT); for speed, each update uses every `demo_stride`-th demo frame from a random offset
   (the features are of 8-frame windows, so neighbouring frames are alike; the random offset keeps a
@@ -49,9 +49,9 @@ class ImitateConfig:
     preset: str = "cpu"
     steps: int = 300  # goal-finetuning updates (ours, cpu: ~3 min on 2 cores)
     starts: int = 64  # imagined trajectories per L_GI update (ours)
-    starts_from: str = "body"  # 'body' | 'demo' (module docstring)
-    goal_lr: float = 3e-3  # Adam on g (ours)
-    critic_warmup: int = 0  # first updates that train V_ot only, g held (ours): an untrained V_ot moves g at random
+    starts_from: str = "demo"  # 'demo' (Eq. 5's D_demo o q_phi) | 'body' (module docstring)
+    goal_lr: float = 3e-4  # Adam on g (ours; 3e-3 moved g off what the policy follows, README Phase 2)
+    critic_warmup: int = 100  # first updates that train V_ot only, g held (ours): an untrained V_ot moves g at random
     critic_lr: float = 8e-5  # V_ot, as the phase-1 critic (Dreamer V1)
     finetune_policy: int = 1  # 1: psi jointly finetuned by L_MG (Sec. 4); 0: the policy stays exactly psi*
     demo_stride: int = 5  # demo frames used per update: every 5th from a random offset (1 = all)
@@ -83,13 +83,19 @@ def demo_folder(data, demo, view):
     return folder
 
 
-def body_pool(models, cfgs, rng, device, segments=32):
-    """D_body segments filtered by the world model (no gradient): their posterior states, flattened, are where
-    imagination starts; the segments themselves feed L_MG's behaviour-cloning term when the run uses one."""
+def body_segments(cfgs):
+    """D_body as train.Segments (the run's data folder and segment length): what L_MG keeps training on."""
     wc, tc = cfgs["wm"], cfgs["train"]
     keys = (wc.obs, "action", "is_first", "p")
-    episodes = collect.load_folder(os.path.join(tc.data, tc.env), keys)
-    batch = train.Segments(episodes, keys, wc.seq_len).sample(segments, rng, device)
+    return train.Segments(collect.load_folder(os.path.join(tc.data, tc.env), keys), keys, wc.seq_len)
+
+
+def body_pool(models, cfgs, segments, rng, device, n=32):
+    """n D_body segments filtered by the world model (no gradient): their posterior states, flattened, are where
+    imagination starts and where L_MG's D_body goals come from; the segments themselves feed L_MG's
+    behaviour-cloning term when the run uses one."""
+    wc = cfgs["wm"]
+    batch = segments.sample(n, rng, device)
     with torch.no_grad():
         post, _ = models["world_model"].observe(batch[wc.obs], batch["action"], batch["is_first"])
         bc = {"feat": models["world_model"].feat(post), "goal": models["goal_vae"].goal(batch["p"]), "action": batch["action"]}
@@ -139,13 +145,14 @@ def finetune_goal(models, cfgs, ic, ot_cfg, goal0, demo_p, seed, device):
     opt_ot = torch.optim.Adam(critic_ot.parameters(), lr=ic.critic_lr)
     opt_actor = torch.optim.Adam(models["actor"].parameters(), lr=ac.actor_lr)
     opt_critic = torch.optim.Adam(models["critic"].parameters(), lr=ac.critic_lr)
-    pool, bc = body_pool(models, cfgs, rng, device)
-    with torch.no_grad():
-        body_goals = models["world_model"].feat(pool)
+    segments = body_segments(cfgs)
     demo_p = torch.as_tensor(np.stack([p[: min(len(q) for q in demo_p)] for p in demo_p]), device=device)  # (K, M, D)
     M = demo_p.shape[1]
     bar = tqdm(range(ic.steps), desc=f"GIIL-FT seed {seed}", leave=False)
     for step in bar:
+        # fresh D_body segments every update, as in phase 1: L_MG goes on training on all of D_body
+        pool, bc = body_pool(models, cfgs, segments, rng, device, cfgs["wm"].batch)
+        body_goals = models["world_model"].feat(pool)
         index = torch.randint(len(pool["deter"]), (ic.starts,), device=device)
         body_start = {k: v[index] for k, v in pool.items()}
         if ic.starts_from == "body":
@@ -214,7 +221,8 @@ def imitate(run_dir, demo, view, finetune, ic, zero_shot=True):
             if render:
                 write_video(os.path.join(out_dir, f"{demo}_{view}_{method}_s{seed}.mp4"), video_demo, frames)
         row = {"agent": tc.env, "demo": demo, "view": view, "task": task, "setting": where, "method": method, "seed": seed,
-               "score": float(np.mean(scores)), "episode_scores": scores, "time": round(time.time() - t0, 1), "demo_returns": demo_returns}
+               "score": float(np.mean(scores)), "episode_scores": scores, "time": round(time.time() - t0, 1), "demo_returns": demo_returns,
+               "config": result_config(ic, method)}
         with open(results_path, "a") as f:
             f.write(json.dumps(row) + "\n")
         rows.append(row)
@@ -278,17 +286,26 @@ def load_results(run_dir):
     return list(rows.values())
 
 
+def result_config(ic, method):
+    """The ImitateConfig fields a result depends on: evaluation for GIIL-ZS, and finetuning too for GIIL-FT."""
+    fields = dataclasses.asdict(ic)
+    keep = ("eval_episodes", "eval_steps") if method == "GIIL-ZS" else tuple(k for k in fields if k not in ("seeds", "video"))
+    return {k: fields[k] for k in keep}
+
+
 def table(run_dir, ic, demos_per_cell=10):
     """Every setting x task for this agent, GIIL-ZS and GIIL-FT; runs only the cells missing from results.jsonl.
-    A row counts only if it was made with the demos now on disk (their returns match): regenerating D_demo
-    makes the cells run again instead of mixing old and new results."""
+    A row counts only if it was made with the demos now on disk (their returns match) and with the settings asked
+    for (result_config): regenerating D_demo or changing a setting makes the cells run again instead of mixing
+    old and new results."""
     cfgs = train.load_run(run_dir)[0]
     agent, current = cfgs["train"].env, []
     for task in envs.TASKS:
         for where in SETTINGS:
             demo, view = demo_of(agent, task, where)
             returns = [round(e["return"], 3) for e in collect.load_folder(demo_folder(cfgs["train"].data, demo, view), ())]
-            cell = lambda: [r for r in load_results(run_dir) if r["demo"] == demo and r["view"] == view and r.get("demo_returns") == returns]
+            cell = lambda: [r for r in load_results(run_dir) if r["demo"] == demo and r["view"] == view and r.get("demo_returns") == returns
+                            and r.get("config") == result_config(ic, r["method"])]
             count = lambda m: sum(r["method"] == m for r in cell())
             zs, ft = count("GIIL-ZS") < demos_per_cell, count("GIIL-FT") < ic.seeds
             if zs or ft:

@@ -1,4 +1,5 @@
 """imitate.py: GIIL-ZS / GIIL-FT end to end (smoke), the stop-gradients of Eq. 5 vs Eq. 4, bad input, tables."""
+import dataclasses
 import json
 import os
 import shutil
@@ -32,7 +33,7 @@ def test_goal_gets_only_L_GI_and_policy_only_L_MG(smoke_run):
     critic_ot, slow_ot = imitate.policy.make_critics(cfgs["ac"], feat_dim, 0)
     goal = torch.nn.Parameter(torch.randn(feat_dim))
     cfgs["ac"].bc = 1.0  # the cpu preset's behaviour-cloning term is part of L_MG too
-    pool, bc = imitate.body_pool(models, cfgs, np.random.default_rng(0), "cpu", segments=2)
+    pool, bc = imitate.body_pool(models, cfgs, imitate.body_segments(cfgs), np.random.default_rng(0), "cpu", n=2)
     start = {k: v[:6] for k, v in pool.items()}
     demo_p = torch.nn.functional.normalize(torch.randn(2, 12, models["goal_vae"].feat_dim), dim=-1)
     gi, ot_loss, _ = imitate.goal_inference_loss(models, critic_ot, slow_ot, goal, start, demo_p, cfgs, ot_reward.OTConfig(iters=5))
@@ -95,6 +96,11 @@ def test_table_keeps_finished_cells(smoke_run, tmp_path):
     imitate.table(run, SMOKE, demos_per_cell=2)
     new = [json.loads(line) for line in open(os.path.join(run, "results.jsonl")).read().splitlines()[len(lines):]]
     assert {(r["demo"], r["view"]) for r in new} == {("walker_stand", "side")} and len(new) == 2 + SMOKE.seeds
+    # other finetuning settings: every GIIL-FT cell runs again, no GIIL-ZS cell does
+    before = len(open(os.path.join(run, "results.jsonl")).read().splitlines())
+    imitate.table(run, dataclasses.replace(SMOKE, goal_lr=1e-4), demos_per_cell=2)
+    new = [json.loads(line) for line in open(os.path.join(run, "results.jsonl")).read().splitlines()[before:]]
+    assert {r["method"] for r in new} == {"GIIL-FT"} and len(new) == 16 * SMOKE.seeds
 
 
 def test_command_line(smoke_run, tmp_path):
@@ -129,8 +135,6 @@ def test_every_finetuning_seed_starts_from_the_pretrained_policy(smoke_run, tmp_
 
 def test_critic_warmup_holds_the_goal(smoke_run):
     """During the first critic_warmup updates only V_ot learns: g comes back unchanged; after them g moves."""
-    import dataclasses
-
     cfgs, models, _ = train.load_run(smoke_run)
     goal0 = torch.randn(models["world_model"].feat_dim)
     demo_p = [np.random.default_rng(k).standard_normal((12, models["goal_vae"].feat_dim)).astype(np.float32) for k in range(2)]
