@@ -50,11 +50,11 @@ class ImitateConfig:
     steps: int = 300  # goal-finetuning updates (ours, cpu: ~3 min on 2 cores)
     starts: int = 64  # imagined trajectories per L_GI update (ours)
     starts_from: str = "demo"  # 'demo' (Eq. 5's D_demo o q_phi) | 'body' (module docstring)
-    goal_lr: float = 3e-4  # Adam on g (ours; 3e-3 moved g off what the policy follows, README Phase 2)
+    goal_lr: float = 3e-4  # Adam on g (ours; at 3e-3 the finetuned goals scored lower, README Phase 2)
     critic_warmup: int = 100  # first updates that train V_ot only, g held (ours): an untrained V_ot moves g at random
     critic_lr: float = 8e-5  # V_ot, as the phase-1 critic (Dreamer V1)
     finetune_policy: int = 1  # 1: psi jointly finetuned by L_MG (Sec. 4); 0: the policy stays exactly psi*
-    demo_stride: int = 5  # demo frames used per update: every 5th from a random offset (1 = all)
+    demo_stride: int = 5  # body starts: demo frames used per update, every 5th from a random offset (1 = all)
     seeds: int = 3  # GIIL-FT seeds (Sec. 5)
     eval_episodes: int = 1  # episodes per GIIL-ZS goal and per GIIL-FT seed
     eval_steps: int = envs.EPISODE_STEPS
