@@ -142,6 +142,13 @@ def _check_name(kind, value, valid):
         raise ValueError(f"unknown {kind} {value!r}: valid {kind} names are {', '.join(valid)}")
 
 
+def airborne(physics):
+    """True when no geom of the body touches the floor (MuJoCo's contact list of the last step)."""
+    contacts = physics.data.contact[: physics.data.ncon]
+    floor = physics.model.geom("floor").id
+    return not np.any((contacts.geom1 == floor) | (contacts.geom2 == floor))
+
+
 def task_reward(physics, body, task):
     """The shared reward of one control step (module docstring); equals dm_control's walker for stand/walk/run."""
     height = physics.named.data.xpos["torso", "z"]
@@ -152,10 +159,7 @@ def task_reward(physics, body, task):
     if task == "stand":
         return stand
     if task == "jump":
-        contacts = physics.data.contact[: physics.data.ncon]
-        floor = physics.model.geom("floor").id
-        airborne = not np.any((contacts.geom1 == floor) | (contacts.geom2 == floor))
-        lift = np.clip((height - stand_height) / JUMP_RISE, 0.0, 1.0) * airborne
+        lift = np.clip((height - stand_height) / JUMP_RISE, 0.0, 1.0) * airborne(physics)
         return stand * (5 * lift + 1) / 6
     speed = MOVE_SPEED[task]
     com_vx = physics.named.data.sensordata["torso_subtreelinvel"][0]

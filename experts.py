@@ -152,15 +152,13 @@ def jump_stats(body, episodes=10, seed=1000, step=None):
     that stay airborne >= 2 steps, highest torso rise above the standing height in metres, mean torso
     uprightness cos(pitch) over the airborne steps: 1 = vertical, 0 = horizontal)."""
     actor, env = load_expert(body, "jump", step), envs.make_env(body, "jump")
-    floor = env.physics.model.geom("floor").id
     airborne, takeoffs, peaks, upright = [], [], [], []
     for k in range(episodes):
         obs, flying, heights, zz = env.reset(seed=seed + k)[0], [], [], []
         for _ in range(envs.EPISODE_STEPS):
             action = actor(torch.as_tensor(obs)[None, None], deterministic=True)[0][0, 0].double().numpy()
             obs = env.step(action)[0]
-            contacts = env.physics.data.contact[: env.physics.data.ncon]
-            flying.append(not np.any((contacts.geom1 == floor) | (contacts.geom2 == floor)))
+            flying.append(envs.airborne(env.physics))
             heights.append(env.physics.named.data.xpos["torso", "z"])
             zz.append(env.physics.named.data.xmat["torso", "zz"])
         f = np.array(flying)
