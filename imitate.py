@@ -275,14 +275,15 @@ def demo_of(agent, task, where):
 
 
 def load_results(run_dir):
-    """The latest row per (demo, view, method, seed) of runs/<name>/results.jsonl."""
+    """The latest row per (demo, view, method, seed, demos' returns, settings) of runs/<name>/results.jsonl: a rerun
+    replaces its own earlier result, never one made with other demos or settings."""
     path = os.path.join(run_dir, "results.jsonl")
     rows = {}
     if os.path.exists(path):
         with open(path) as f:
             for line in f:
                 r = json.loads(line)
-                rows[(r["demo"], r["view"], r["method"], r["seed"])] = r
+                rows[(r["demo"], r["view"], r["method"], r["seed"], json.dumps(r.get("demo_returns")), json.dumps(r.get("config")))] = r
     return list(rows.values())
 
 
