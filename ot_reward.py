@@ -6,8 +6,8 @@ so the cost lives there, not in the world model's latent space); the entropic OT
 two sets of frames, with uniform marginals, comes from Sinkhorn; agent step i earns
     r_i = -scale * sum_j P_ij C_ij.
 Against several demos, each trajectory takes its rewards from the demo with the smallest total
-transport cost <P, C> (ROT, AIME-NoB). r^ot is a regression target for V_ot (Eq. 5), so it is
-computed without gradient: nothing is differentiated through Sinkhorn.
+transport cost <P, C> (ROT, AIME-NoB). Nothing is differentiated through Sinkhorn: the plan is a constant,
+and the reward is differentiable in the agent's features through the cost alone (ot_reward).
 
 Which demo frames an imagined segment (T ~ 16 steps) is matched against, the paper leaves open:
 * whole demo (default): the segment's T frames against all M frames of a demo. Each agent step
@@ -105,7 +105,6 @@ def _check_inputs(agent_p, demo_p, demo_offsets):
         raise ValueError(f"windowed matching needs demos of at least T={T} frames, got M={demo_p.shape[-2]}")
 
 
-@torch.no_grad()  # r^ot is a target for V_ot (Eq. 5): no gradient through Sinkhorn
 def ot_reward(agent_p, demo_p, cfg, demo_offsets=None):
     """Per-step OT reward of B imagined trajectories against the best-matching of K demos (App. C).
 
@@ -115,7 +114,10 @@ def ot_reward(agent_p, demo_p, cfg, demo_offsets=None):
       within demo frames demo_offsets[b] + 0..T-1, the window moved back to end at the demo's last
       frame where it would run past it. Without it, whole-demo matching.
     Returns reward (B, T) in agent_p's dtype and on its device, and best (B,) the index of the demo
-    each trajectory was matched to.
+    each trajectory was matched to. The plans and the choice of demo carry no gradient; where agent_p
+    requires grad, the reward is differentiable through the cost with the plan held constant (for the
+    entropic OT cost <P, C> - eps H(P) this is its exact gradient: the envelope theorem), so the
+    imagined lambda-returns of Eq. 5 reach g through the OT cost as Dreamer's returns do through a reward model.
     """
     _check_inputs(agent_p, demo_p, demo_offsets)
     p = agent_p.to(torch.float64)  # float64 throughout: exp(-C/eps) underflows in float32 (FACTS.md)
@@ -129,14 +131,17 @@ def ot_reward(agent_p, demo_p, cfg, demo_offsets=None):
         target = demo[:, frames].transpose(0, 1)  # (B, K, T, D) each trajectory's window in every demo
     kernel_bytes = 8 * K * T * target.shape[2]  # one trajectory's float64 kernels
     chunk = max(1, cfg.cpu_chunk_bytes // kernel_bytes) if p.device.type == "cpu" else B
-    step_cost = []  # sum_j P_ij C_ij per trajectory, demo and agent step
-    for p_chunk, target_chunk in zip(p.split(chunk), target.split(chunk)):
-        cost = cosine_cost(p_chunk[:, None], target_chunk)  # (b, K, T, M or T)
-        plan = sinkhorn(cost, cfg.eps, cfg.iters)  # (b, K, T, M or T)
-        step_cost.append((plan * cost).sum(-1))  # (b, K, T)
-    step_cost = torch.cat(step_cost)  # (B, K, T)
-    best = step_cost.sum(-1).argmin(-1)  # (B,) smallest total transport cost <P, C> (ROT)
-    reward = -cfg.scale * step_cost[torch.arange(B, device=p.device), best]  # (B, T)
+    best, plans = [], []
+    with torch.no_grad():  # nothing is differentiated through Sinkhorn
+        for p_chunk, target_chunk in zip(p.split(chunk), target.split(chunk)):
+            cost = cosine_cost(p_chunk[:, None], target_chunk)  # (b, K, T, M or T)
+            plan = sinkhorn(cost, cfg.eps, cfg.iters)  # (b, K, T, M or T)
+            b = (plan * cost).sum((-2, -1)).argmin(-1)  # (b,) smallest total transport cost <P, C> (ROT)
+            best.append(b)
+            plans.append(plan[torch.arange(len(b), device=p.device), b])  # (b, T, M or T)
+    best, plan = torch.cat(best), torch.cat(plans)  # (B,), (B, T, M or T)
+    cost = cosine_cost(p, target[torch.arange(B, device=p.device), best])  # (B, T, M or T), differentiable in agent_p
+    reward = -cfg.scale * (plan * cost).sum(-1)  # (B, T)
     return reward.to(agent_p.dtype), best
 
 

@@ -106,13 +106,29 @@ def test_chunks_do_not_change_the_reward():
     assert torch.equal(one_batch[1], one_by_one[1]) and torch.allclose(one_batch[0], one_by_one[0], rtol=0, atol=1e-14)
 
 
-def test_shapes_dtype_and_no_gradient():
-    agent_p = torch.randn(4, 6, 16, requires_grad=True)  # float32, not unit norm
+def test_shapes_and_dtype():
+    agent_p = torch.randn(4, 6, 16)  # float32, not unit norm
     reward, best = ot_reward.ot_reward(agent_p, unit(30, 16, seed=0), OTConfig())  # one demo (M, D)
     assert reward.shape == (4, 6) and reward.dtype == torch.float32 and not reward.requires_grad
     assert best.tolist() == [0, 0, 0, 0]
     reward, best = ot_reward.ot_reward(agent_p, unit(3, 30, 16, seed=0), OTConfig(scale=10))  # K demos
     assert reward.shape == (4, 6) and best.shape == (4,) and (reward <= 0).all()
+
+
+def test_gradient_is_that_of_the_entropic_ot_cost():
+    """With the plan held constant, d(sum_t r_t)/dx equals minus the gradient of the entropic OT cost
+    min_P <P, C(x)> + eps sum P (log P - 1), here differentiated through a fully converged, unrolled Sinkhorn."""
+    eps, iters = 0.05, 500
+    agent_p = torch.randn(2, 6, 16, dtype=torch.float64, requires_grad=True)
+    demo = unit(9, 16, seed=1).double()
+    reward, _ = ot_reward.ot_reward(agent_p, demo, OTConfig(eps=eps, iters=iters))
+    (ours,) = torch.autograd.grad(reward.sum(), agent_p)
+    cost = ot_reward.cosine_cost(agent_p, demo.expand(2, 9, 16))
+    plan = ot_reward.sinkhorn(cost, eps, iters)  # differentiable in agent_p through every iteration
+    value = (plan * cost).sum() + eps * (plan * (plan.log() - 1)).sum()
+    (reference,) = torch.autograd.grad(value, agent_p)
+    assert ours.abs().max() > 1e-3
+    assert torch.allclose(ours, -reference, atol=1e-6)
 
 
 nan_demo = unit(30, 16, seed=0).clone()
