@@ -44,7 +44,10 @@ def test_eq3_terms_match_torch_distributions():
     assert abs(metrics["goal_kl"] - kl.item()) < 1e-4
     assert abs(metrics["goal_deter_nll"] - nll.item()) < 1e-3
     assert abs(metrics["goal_recon"] - vae.cfg.kappa * (1 - metrics["goal_cos"])) < 1e-4
-    assert abs(loss.item() - (metrics["goal_kl"] + metrics["goal_deter_nll"] + metrics["goal_recon"])) < 1e-3
+    post_cos = (vae.decode(torch.cat([post["deter"], post["stoch"]], -1)) * p).sum(-1).mean()  # the decoder on posterior states
+    assert abs(metrics["goal_post_cos"] - post_cos.item()) < 1e-5
+    expected = metrics["goal_kl"] + metrics["goal_deter_nll"] + metrics["goal_recon"] + vae.cfg.kappa * (1 - post_cos.item())
+    assert abs(loss.item() - expected) < 1e-3
 
 
 def test_encode_goal_decode():
@@ -69,7 +72,7 @@ def test_a_few_updates_fit_the_encoder_to_the_posterior():
     def sample(n):
         p = F.normalize(torch.randn(n, 1, D), dim=-1)
         target = torch.tanh(p @ proj)
-        return p, {"deter": target[..., :H], "mean": target[..., H:], "std": torch.full((n, 1, Z), 0.2)}
+        return p, {"deter": target[..., :H], "stoch": target[..., H:], "mean": target[..., H:], "std": torch.full((n, 1, Z), 0.2)}
 
     p, post = sample(256)
     before = vae.loss(p, post)[1]
@@ -83,3 +86,4 @@ def test_a_few_updates_fit_the_encoder_to_the_posterior():
     assert after["goal_kl"] < 0.3 * before["goal_kl"], (before, after)
     assert after["goal_deter_nll"] < before["goal_deter_nll"] - 5, (before, after)
     assert after["goal_cos"] > before["goal_cos"] + 0.4, (before, after)
+    assert after["goal_post_cos"] > before["goal_post_cos"] + 0.4, (before, after)
