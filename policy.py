@@ -48,13 +48,15 @@ class ActorCriticConfig:
     starts: int = 2500  # imagination start states per update: Dreamer V1 starts from all 50x50 posterior states
     goal_mix: float = 0.5  # share of goals from the goal encoder, the rest D_body posterior states (ours; sample_goals)
     bc: float = 0.0  # weight of hindsight goal-conditioned behaviour cloning on D_body (ours, bc_loss; 0 = Eq. 4 alone)
+    bc_final: float = 0.0  # share of bc_loss's goals taken from the episode's last frame instead of a later frame of the segment (ours)
 
 
 PRESETS = {
     "smoke": dict(units=16, actor_layers=2, critic_layers=2, horizon=5, starts=32),
     # ours: an update costs time linear in starts (~1 s for all 800 states of a 16x50 batch on one core)
     # bc: on a CPU budget (~2k actor updates) Eq. 4 alone did not learn to reach goals (README, Deviations)
-    "cpu": dict(units=256, actor_layers=2, critic_layers=2, starts=256, actor_lr=3e-4, bc=1.0),
+    # bc_final: evaluation and GIIL-ZS give the goal of an episode's last frame (README, Phase 1)
+    "cpu": dict(units=256, actor_layers=2, critic_layers=2, starts=256, actor_lr=3e-4, bc=1.0, bc_final=0.5),
     "paper": dict(units=1024, horizon=16, starts=48 * 48),  # GenRL: horizon 16, all states of a 48x48 batch (FACTS.md)
 }
 
@@ -215,18 +217,24 @@ def actor_loss(returns, log_prob, return_norm, entropy_scale):  # Eq. 4
     return loss, {"actor_loss": loss.item(), "return": returns.mean().item(), "return_scale": scale.item(), "entropy": entropy.item()}
 
 
-def bc_loss(actor, post_feat, goal_feat, action):
+def bc_loss(actor, post_feat, goal_feat, action, final_goal=None, final_share=0.0):
     """Hindsight goal-conditioned behaviour cloning (ours, a deviation; GCSL, Ghosh et al. 2021): D_body has no task
     labels, but each of its actions a_t reaches what its own episode shows later, so -log pi(a_t | s_t, g) with g the
     goal encoder's state of a later frame of the same segment, for every step t of every segment (each with its own
-    random later frame). post_feat (B, T, F) posterior feats, goal_feat (B, T, F) goal-encoder goals of every frame,
+    random later frame); with probability final_share, g is instead final_goal, the goal of the episode's last frame
+    (what evaluation and GIIL-ZS feed the policy: a standing expert's last frame is then the goal of its getting up).
+    post_feat (B, T, F) posterior feats, goal_feat (B, T, F) goal-encoder goals of every frame, final_goal (B, F),
     action (B, T, A) with action[:, t] = a_{t-1} (world_model.py's alignment)."""
     B, T, _ = post_feat.shape
     device = post_feat.device
     t = torch.arange(T - 1, device=device).expand(B, -1)  # (B, T - 1): s_t, acted on with a_t = action[:, t + 1]
     later = t + 1 + (torch.rand(B, T - 1, device=device) * (T - 1 - t)).long()  # a frame in (t, T - 1]
     rows = torch.arange(B, device=device)[:, None].expand(-1, T - 1)
-    mean, std = actor.distribution(post_feat[rows, t].flatten(0, 1).detach(), goal_feat[rows, later].flatten(0, 1).detach())
+    goal = goal_feat[rows, later]  # (B, T - 1, F)
+    if final_share > 0:
+        final = torch.rand(B, T - 1, 1, device=device) < final_share
+        goal = torch.where(final, final_goal[:, None].expand_as(goal), goal)
+    mean, std = actor.distribution(post_feat[rows, t].flatten(0, 1).detach(), goal.flatten(0, 1).detach())
     a = action[rows, t + 1].flatten(0, 1).clamp(-0.999, 0.999)  # tanh is never exactly +-1
     u = torch.atanh(a)
     loss = -tanh_gaussian_log_prob(u, mean, std).mean()

@@ -102,6 +102,8 @@ class Segments:
         index = start[:, None] + np.arange(self.seq_len)  # (B, T)
         out = {k: torch.as_tensor(v[index], device=device) for k, v in self.data.items()}
         out["episode"] = torch.as_tensor(episode, device=device)
+        if "p" in self.data:  # the feature of each segment's episode's last frame: hindsight goals (policy.bc_loss)
+            out["p_last"] = torch.as_tensor(self.data["p"][self.starts[episode] + self.lengths[episode] - 1], device=device)
         return out
 
 
@@ -273,8 +275,8 @@ def train(cfgs, run_dir, resume):
             a_loss, c_loss, m = policy.policy_losses(wm, dist_net, models["actor"], models["critic"], models["slow_critic"], models["return_norm"], start, goals, ac)
             if ac.bc:
                 with torch.no_grad():
-                    goal_feat = vae.goal(batch["p"])  # (B, T, F)
-                bc, bc_metrics = policy.bc_loss(models["actor"], wm.feat(post), goal_feat, batch["action"])
+                    goal_feat, final_goal = vae.goal(batch["p"]), vae.goal(batch["p_last"])  # (B, T, F), (B, F)
+                bc, bc_metrics = policy.bc_loss(models["actor"], wm.feat(post), goal_feat, batch["action"], final_goal, ac.bc_final)
                 a_loss = a_loss + ac.bc * bc
                 m.update(bc_metrics)
             apply("actor", a_loss, "Eq. 4 actor loss")

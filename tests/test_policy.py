@@ -163,3 +163,8 @@ def test_bc_loss_is_tanh_gaussian_nll_of_dataset_actions():
     expected = -(logp(0, later0).sum() + logp(1, torch.full((B,), 2)).sum()) / (2 * B)
     assert loss.item() == pytest.approx(expected.item(), rel=1e-4)
 
+    # final_share = 1: every step's goal is the episode's last-frame goal
+    final_goal = torch.randn(B, 6)
+    loss, _ = P.bc_loss(actor, feat, goal, action, final_goal, final_share=1.0)
+    logp_final = lambda t: TransformedDistribution(Normal(*actor.distribution(feat[:, t], final_goal)), [TanhTransform()]).log_prob(action[:, t + 1]).sum(-1)
+    assert loss.item() == pytest.approx(-(logp_final(0).sum() + logp_final(1).sum()).item() / (2 * B), rel=1e-4)
