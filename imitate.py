@@ -32,6 +32,7 @@ import time
 import cv2
 import numpy as np
 import torch
+import torch.nn.functional as F
 from tqdm import tqdm
 
 import collect
@@ -51,6 +52,7 @@ class ImitateConfig:
     starts: int = 64  # imagined trajectories per L_GI update (ours)
     starts_from: str = "demo"  # 'demo' (Eq. 5's D_demo o q_phi) | 'body' (module docstring)
     goal_lr: float = 3e-4  # Adam on g (ours; at 3e-3 the finetuned goals scored lower, README Phase 2)
+    goal_space: str = "latent"  # 'latent': g is the parameter (Eq. 5); 'feature': g = q(s | p) with the video feature p the parameter (ours, finetune_goal)
     critic_warmup: int = 100  # first updates that train V_ot only, g held (ours): an untrained V_ot moves g at random
     critic_lr: float = 8e-5  # V_ot, as the phase-1 critic (Dreamer V1)
     finetune_policy: int = 1  # 1: psi jointly finetuned by L_MG (Sec. 4); 0: the policy stays exactly psi*
@@ -66,6 +68,9 @@ PRESETS = {
     "cpu": dict(),
     "paper": dict(steps=2000, starts=256, demo_stride=1),
 }
+
+
+CHOICES = {"preset": tuple(PRESETS), "starts_from": ("demo", "body"), "goal_space": ("latent", "feature")}
 
 
 def setting(agent_body, demo_body, view):
@@ -98,7 +103,8 @@ def body_pool(models, cfgs, segments, rng, device, n=32):
     batch = segments.sample(n, rng, device)
     with torch.no_grad():
         post, _ = models["world_model"].observe(batch[wc.obs], batch["action"], batch["is_first"])
-        bc = {"feat": models["world_model"].feat(post), "goal": models["goal_vae"].goal(batch["p"]), "action": batch["action"]}
+        bc = {"feat": models["world_model"].feat(post), "goal": models["goal_vae"].goal(batch["p"]), "action": batch["action"],
+              "final": models["goal_vae"].goal(batch["p_last"])}
     return {k: v.flatten(0, 1) for k, v in post.items()}, bc
 
 
@@ -110,11 +116,13 @@ def goal_inference_loss(models, critic_ot, slow_ot, goal, start, demo_p, cfgs, o
     N = len(start["deter"])
     with policy.freeze(wm, vae, actor, slow_ot):  # psi*, the world model and the goal decoder are constants here
         feat, _, _ = policy.rollout(wm, actor, start, goal.expand(N, -1), ac.horizon)  # (N, H + 1, F)
-        with torch.no_grad():
-            reward, best = ot_reward.ot_reward(vae.decode(feat[:, 1:]), demo_p, ot_cfg, offsets)  # (N, H): r^ot on arrival
+        # (N, H): r^ot on arrival, differentiable in feat through the OT cost (the plan a constant, ot_reward.py)
+        reward, best = ot_reward.ot_reward(vae.decode(feat[:, 1:]), demo_p, ot_cfg, offsets)
         value = slow_ot(feat, None)  # (N, H + 1): V_ot(s), differentiable in feat
         returns = policy.lambda_return(reward, value, ac.gamma, ac.lambda_)  # (N, H)
-    loss = -returns.mean()  # Eq. 5: -E[sum V], the lambda-returns standing for the values as in Dreamer V1
+    # Eq. 5: -E[sum V], the lambda-returns standing for the values as in Dreamer V1; their rewards pass g's gradient
+    # through the dynamics and the goal decoder, where Eq. 5's V_ot alone gave a gradient too weak to follow (README)
+    loss = -returns.mean()
     c_loss, c_metrics = policy.critic_loss(critic_ot, feat, None, returns)
     return loss, c_loss, {"L_GI": loss.item(), "ot_reward": reward.mean().item(), **{"ot_" + k: v for k, v in c_metrics.items()}}
 
@@ -128,20 +136,33 @@ def multi_goal_loss(models, start, goal, body_goals, bc, cfgs):  # Eq. 4 during 
     a_loss, c_loss, metrics = policy.policy_losses(models["world_model"], models["dist_net"], models["actor"], models["critic"],
                                                    models["slow_critic"], models["return_norm"], start, goals, ac)
     if ac.bc:
-        a_loss = a_loss + ac.bc * policy.bc_loss(models["actor"], bc["feat"], bc["goal"], bc["action"])[0]
+        a_loss = a_loss + ac.bc * policy.bc_loss(models["actor"], bc["feat"], bc["goal"], bc["action"], bc["final"], ac.bc_final)[0]
     return a_loss, c_loss, metrics
 
 
-def finetune_goal(models, cfgs, ic, ot_cfg, goal0, demo_p, seed, device):
-    """GIIL-FT: optimise g (and psi by L_MG) for ic.steps updates from goal0. Returns the final g (F,)."""
+def finetune_goal(models, cfgs, ic, ot_cfg, p_goal, demo_p, seed, device):
+    """GIIL-FT: optimise g (and psi by L_MG) for ic.steps updates from the zero-shot goal q(s | p_goal), p_goal (D,) the
+    first demo's last feature. Returns the final g (F,).
+    goal_space 'latent' optimises g itself, as Eq. 5 writes it; 'feature' (ours) optimises a video feature p, from
+    p_goal, and feeds the policy g = q(s | p / |p|): g then stays among the goal encoder's outputs, the goals the policy
+    was trained to reach, instead of drifting into latent directions that only the imagination rewards."""
     torch.manual_seed(seed)
     rng = np.random.default_rng(seed)
     ac = cfgs["ac"]
     feat_dim = models["world_model"].feat_dim
     critic_ot, slow_ot = policy.make_critics(ac, feat_dim, 0)
     critic_ot, slow_ot = critic_ot.to(device), slow_ot.to(device)
-    goal = torch.nn.Parameter(goal0.clone())
-    opt_goal = torch.optim.Adam([goal], lr=ic.goal_lr)
+    vae = models["goal_vae"]
+    with torch.no_grad():
+        param = torch.nn.Parameter(vae.goal(p_goal).clone() if ic.goal_space == "latent" else p_goal.clone())
+
+    def current_goal():
+        if ic.goal_space == "latent":
+            return param
+        with policy.freeze(vae):  # the goal encoder is a constant: only p moves
+            return vae.goal(F.normalize(param, dim=-1))
+
+    opt_goal = torch.optim.Adam([param], lr=ic.goal_lr)
     opt_ot = torch.optim.Adam(critic_ot.parameters(), lr=ic.critic_lr)
     opt_actor = torch.optim.Adam(models["actor"].parameters(), lr=ac.actor_lr)
     opt_critic = torch.optim.Adam(models["critic"].parameters(), lr=ac.critic_lr)
@@ -163,6 +184,7 @@ def finetune_goal(models, cfgs, ic, ot_cfg, goal0, demo_p, seed, device):
             with torch.no_grad():
                 start = models["goal_vae"].encode(demo_p[torch.randint(len(demo_p), (ic.starts,)), t0])
             start, offsets, demo = {k: start[k] for k in ("deter", "stoch", "mean", "std")}, t0 + 1, demo_p
+        goal = current_goal()
         gi_loss, ot_loss, metrics = goal_inference_loss(models, critic_ot, slow_ot, goal, start, demo, cfgs, ot_cfg, offsets)
         warming_up = step < ic.critic_warmup
         for opt, loss in [(opt_ot, ot_loss)] if warming_up else [(opt_goal, gi_loss), (opt_ot, ot_loss)]:
@@ -178,7 +200,8 @@ def finetune_goal(models, cfgs, ic, ot_cfg, goal0, demo_p, seed, device):
                 opt.step()
             policy.ema_update(models["slow_critic"], models["critic"], ac.slow_critic_rate)
         bar.set_postfix(ot=f"{metrics['ot_reward']:.4f}")
-    return goal.detach()
+    with torch.no_grad():
+        return current_goal().detach()
 
 
 def write_video(path, demo_frames, agent_frames):
@@ -238,7 +261,7 @@ def imitate(run_dir, demo, view, finetune, ic, zero_shot=True):
             t0 = time.time()
             for k, m in models.items():  # each seed starts from psi*
                 m.load_state_dict(psi_star[k])
-            goal = finetune_goal(models, cfgs, ic, ot_cfg, goals[0], [d["p"] for d in demos], seed, device)
+            goal = finetune_goal(models, cfgs, ic, ot_cfg, torch.as_tensor(demos[0]["p"][-1], device=device), [d["p"] for d in demos], seed, device)
             evaluate("GIIL-FT", seed, goal, demos[0]["pixels"])
     for method in ("GIIL-ZS", "GIIL-FT"):
         scores = [r["score"] for r in rows if r["method"] == method]
@@ -349,7 +372,7 @@ def main():
     parser.add_argument("--table", action="store_true", help="all settings x tasks for this agent; keeps finished cells")
     for field in dataclasses.fields(ImitateConfig):
         parser.add_argument("--" + field.name.replace("_", "-"), type=type(field.default), default=None,
-                            choices=tuple(PRESETS) if field.name == "preset" else None, help=f"default {field.default!r}, or the preset's")
+                            choices=CHOICES.get(field.name), help=f"default {field.default!r}, or the preset's")
     args = parser.parse_args()
     given = {f.name: getattr(args, f.name) for f in dataclasses.fields(ImitateConfig) if getattr(args, f.name) is not None}
     ic = ImitateConfig(**{**PRESETS[given.get("preset", "cpu")], **given})

@@ -136,10 +136,13 @@ def test_every_finetuning_seed_starts_from_the_pretrained_policy(smoke_run, tmp_
 def test_critic_warmup_holds_the_goal(smoke_run):
     """During the first critic_warmup updates only V_ot learns: g comes back unchanged; after them g moves."""
     cfgs, models, _ = train.load_run(smoke_run)
-    goal0 = torch.randn(models["world_model"].feat_dim)
     demo_p = [np.random.default_rng(k).standard_normal((12, models["goal_vae"].feat_dim)).astype(np.float32) for k in range(2)]
+    p0 = torch.nn.functional.normalize(torch.as_tensor(demo_p[0][-1]), dim=-1)
     ot_cfg = ot_reward.OTConfig(iters=5)
-    held = imitate.finetune_goal(models, cfgs, dataclasses.replace(SMOKE, critic_warmup=SMOKE.steps), ot_cfg, goal0, demo_p, 0, "cpu")
-    assert torch.equal(held, goal0)
-    moved = imitate.finetune_goal(models, cfgs, dataclasses.replace(SMOKE, critic_warmup=SMOKE.steps - 1), ot_cfg, goal0, demo_p, 0, "cpu")
-    assert not torch.equal(moved, goal0)
+    for space in ("latent", "feature"):
+        goal0 = models["goal_vae"].goal(p0).detach()
+        ic = dataclasses.replace(SMOKE, goal_space=space, critic_warmup=SMOKE.steps)
+        held = imitate.finetune_goal(models, cfgs, ic, ot_cfg, p0, demo_p, 0, "cpu")
+        assert torch.allclose(held, goal0), space
+        moved = imitate.finetune_goal(models, cfgs, dataclasses.replace(ic, critic_warmup=SMOKE.steps - 1), ot_cfg, p0, demo_p, 0, "cpu")
+        assert not torch.allclose(moved, goal0), space
