@@ -317,9 +317,10 @@ def result_config(ic, method):
     return {k: fields[k] for k in keep}
 
 
-def table(run_dir, ic, demos_per_cell=10):
+def table(run_dir, ic, settings=SETTINGS, demos_per_cell=10):
     """Every setting x task for this agent, GIIL-ZS and GIIL-FT; runs only the cells missing from results.jsonl.
-    A row counts only if it was made with the demos now on disk (their returns match) and with the settings asked
+    `settings` limits which settings run now (the tables show every finished cell). A row counts only if it was
+    made with the demos now on disk (their returns match) and with the settings asked
     for (result_config): regenerating D_demo or changing a setting makes the cells run again instead of mixing
     old and new results."""
     cfgs = train.load_run(run_dir)[0]
@@ -332,7 +333,7 @@ def table(run_dir, ic, demos_per_cell=10):
                             and r.get("config") == result_config(ic, r["method"])]
             count = lambda m: sum(r["method"] == m for r in cell())
             zs, ft = count("GIIL-ZS") < demos_per_cell, count("GIIL-FT") < ic.seeds
-            if zs or ft:
+            if (zs or ft) and where in settings:  # a setting left out runs nothing; its finished cells still count
                 imitate(run_dir, demo, view, ft, ic, zero_shot=zs)
             current += cell()
     text = markdown_tables(agent, current)
@@ -370,6 +371,7 @@ def main():
     parser.add_argument("--run", default="runs/walker_state_cpu_s0", help="the phase-1 run (train.py) whose agent imitates")
     parser.add_argument("--finetune", action="store_true", help="also GIIL-FT: finetune the goal (Eq. 5), 3 seeds")
     parser.add_argument("--table", action="store_true", help="all settings x tasks for this agent; keeps finished cells")
+    parser.add_argument("--settings", default=",".join(SETTINGS), help="with --table: the settings to run now, comma-separated")
     for field in dataclasses.fields(ImitateConfig):
         parser.add_argument("--" + field.name.replace("_", "-"), type=type(field.default), default=None,
                             choices=CHOICES.get(field.name), help=f"default {field.default!r}, or the preset's")
@@ -377,7 +379,11 @@ def main():
     given = {f.name: getattr(args, f.name) for f in dataclasses.fields(ImitateConfig) if getattr(args, f.name) is not None}
     ic = ImitateConfig(**{**PRESETS[given.get("preset", "cpu")], **given})
     if args.table:
-        table(args.run, ic)
+        settings = args.settings.split(",")
+        unknown = [w for w in settings if w not in SETTINGS]
+        if unknown:
+            parser.error(f"unknown setting(s) {', '.join(unknown)}: choose from {', '.join(SETTINGS)}")
+        table(args.run, ic, settings)
     elif args.demo:
         imitate(args.run, args.demo, args.view, args.finetune, ic)
     else:

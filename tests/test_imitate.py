@@ -96,11 +96,13 @@ def test_table_keeps_finished_cells(smoke_run, tmp_path):
     imitate.table(run, SMOKE, demos_per_cell=2)
     new = [json.loads(line) for line in open(os.path.join(run, "results.jsonl")).read().splitlines()[len(lines):]]
     assert {(r["demo"], r["view"]) for r in new} == {("walker_stand", "side")} and len(new) == 2 + SMOKE.seeds
-    # other finetuning settings: every GIIL-FT cell runs again, no GIIL-ZS cell does
+    # other finetuning settings: the GIIL-FT cells run again, no GIIL-ZS cell does; only in the settings asked for
     before = len(open(os.path.join(run, "results.jsonl")).read().splitlines())
-    imitate.table(run, dataclasses.replace(SMOKE, goal_lr=1e-4), demos_per_cell=2)
+    imitate.table(run, dataclasses.replace(SMOKE, goal_lr=1e-4), settings=("CE-CV",), demos_per_cell=2)
     new = [json.loads(line) for line in open(os.path.join(run, "results.jsonl")).read().splitlines()[before:]]
-    assert {r["method"] for r in new} == {"GIIL-FT"} and len(new) == 16 * SMOKE.seeds
+    assert {(r["method"], r["setting"]) for r in new} == {("GIIL-FT", "CE-CV")} and len(new) == 4 * SMOKE.seeds
+    tables = open(os.path.join(run, "tables.md")).read()
+    assert "| SE-SV | " in tables and "| SE-SV | - |" not in tables  # the zero-shot cells still fill the other settings
 
 
 def test_command_line(smoke_run, tmp_path):
