@@ -24,6 +24,7 @@ Choices where the paper is silent (README, "Deviations"):
     python imitate.py --table [--run runs/<name>]
 """
 import argparse
+import copy
 import dataclasses
 import json
 import os
@@ -140,9 +141,10 @@ def multi_goal_loss(models, start, goal, body_goals, bc, cfgs):  # Eq. 4 during 
     return a_loss, c_loss, metrics
 
 
-def finetune_goal(models, cfgs, ic, ot_cfg, p_goal, demo_p, seed, device):
+def finetune_goal(models, cfgs, ic, ot_cfg, p_goal, demo_p, seed, device, optim_states=None):
     """GIIL-FT: optimise g (and psi by L_MG) for ic.steps updates from the zero-shot goal q(s | p_goal), p_goal (D,) the
-    first demo's last feature. Returns the final g (F,).
+    first demo's last feature. Returns the final g (F,). optim_states: the phase-1 checkpoint's optimiser states, from
+    which L_MG's Adam continues (fresh Adam moments would make its first steps lr-sized on every weight).
     goal_space 'latent' optimises g itself, as Eq. 5 writes it; 'feature' (ours) optimises a video feature p, from
     p_goal, and feeds the policy g = q(s | p / |p|): g then stays among the goal encoder's outputs, the goals the policy
     was trained to reach, instead of drifting into latent directions that only the imagination rewards."""
@@ -166,6 +168,9 @@ def finetune_goal(models, cfgs, ic, ot_cfg, p_goal, demo_p, seed, device):
     opt_ot = torch.optim.Adam(critic_ot.parameters(), lr=ic.critic_lr)
     opt_actor = torch.optim.Adam(models["actor"].parameters(), lr=ac.actor_lr)
     opt_critic = torch.optim.Adam(models["critic"].parameters(), lr=ac.critic_lr)
+    if optim_states:  # deep copies: Adam steps its state in place, and every seed starts from the checkpoint's
+        opt_actor.load_state_dict(copy.deepcopy(optim_states["actor"]))
+        opt_critic.load_state_dict(copy.deepcopy(optim_states["critic"]))
     segments = body_segments(cfgs)
     demo_p = torch.as_tensor(np.stack([p[: min(len(q) for q in demo_p)] for p in demo_p]), device=device)  # (K, M, D)
     M = demo_p.shape[1]
@@ -197,6 +202,7 @@ def finetune_goal(models, cfgs, ic, ot_cfg, p_goal, demo_p, seed, device):
             for opt, loss in ((opt_actor, a_loss), (opt_critic, c_loss)):
                 opt.zero_grad(set_to_none=True)
                 loss.backward()
+                torch.nn.utils.clip_grad_norm_(opt.param_groups[0]["params"], ac.grad_clip)  # as in phase 1
                 opt.step()
             policy.ema_update(models["slow_critic"], models["critic"], ac.slow_critic_rate)
         bar.set_postfix(ot=f"{metrics['ot_reward']:.4f}")
@@ -261,7 +267,8 @@ def imitate(run_dir, demo, view, finetune, ic, zero_shot=True):
             t0 = time.time()
             for k, m in models.items():  # each seed starts from psi*
                 m.load_state_dict(psi_star[k])
-            goal = finetune_goal(models, cfgs, ic, ot_cfg, torch.as_tensor(demos[0]["p"][-1], device=device), [d["p"] for d in demos], seed, device)
+            goal = finetune_goal(models, cfgs, ic, ot_cfg, torch.as_tensor(demos[0]["p"][-1], device=device), [d["p"] for d in demos], seed, device,
+                                 ckpt.get("optims"))
             evaluate("GIIL-FT", seed, goal, demos[0]["pixels"])
     for method in ("GIIL-ZS", "GIIL-FT"):
         scores = [r["score"] for r in rows if r["method"] == method]

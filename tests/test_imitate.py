@@ -148,3 +148,16 @@ def test_critic_warmup_holds_the_goal(smoke_run):
         assert torch.allclose(held, goal0), space
         moved = imitate.finetune_goal(models, cfgs, dataclasses.replace(ic, critic_warmup=SMOKE.steps - 1), ot_cfg, p0, demo_p, 0, "cpu")
         assert not torch.allclose(moved, goal0), space
+
+
+def test_finetuning_continues_phase_1_optimisers_without_changing_them(smoke_run):
+    """L_MG's Adam starts from the checkpoint's states (deep copies: every seed starts from the same ones)."""
+    cfgs, models, ckpt = train.load_run(smoke_run)
+    states = ckpt["optims"]
+    before = [t.clone() for s in states["actor"]["state"].values() for t in s.values()]
+    assert before, "the smoke checkpoint must hold Adam moments for the actor"
+    demo_p = [np.random.default_rng(k).standard_normal((12, models["goal_vae"].feat_dim)).astype(np.float32) for k in range(2)]
+    p0 = torch.nn.functional.normalize(torch.as_tensor(demo_p[0][-1]), dim=-1)
+    imitate.finetune_goal(models, cfgs, SMOKE, ot_reward.OTConfig(iters=5), p0, demo_p, 0, "cpu", states)
+    after = [t for s in states["actor"]["state"].values() for t in s.values()]
+    assert all(torch.equal(a, b) for a, b in zip(before, after))
