@@ -107,6 +107,15 @@ class Segments:
         return out
 
 
+@torch.no_grad()
+def open_loop_metrics(wm, vae, batch, context):
+    """Imagination quality: the world model's open-loop error (Eq. 2's decoder) and the cosine between the goal decoder's
+    features of the open-loop imagined states and the true p_t, what phase 2's OT reward reads (0 to 1, 1 = exact)."""
+    feats, keep = wm.open_loop(batch, context)
+    cos = (vae.decode(feats) * batch["p"][:, context:]).sum(-1)[keep]
+    return {"open_loop": wm.open_loop_error(batch, context), "open_loop_p_cos": cos.mean().item() if len(cos) else float("nan")}
+
+
 def build_models(cfgs, obs_shape, action_dim, p_dim, device):
     wm = world_model.WorldModel(cfgs["wm"], obs_shape, action_dim)
     models = {
@@ -286,12 +295,12 @@ def train(cfgs, run_dir, resume):
         step += 1
         bar.update(1)
         if step % tc.log_every == 0 or step == tc.steps:
-            metrics.update(step=step, updates_per_s=tc.log_every / (time.time() - t0), open_loop=wm.open_loop_error(data.sample(wc.batch, rng, device), wc.seq_len // 2))
+            metrics.update(step=step, updates_per_s=tc.log_every / (time.time() - t0), **open_loop_metrics(wm, vae, data.sample(wc.batch, rng, device), wc.seq_len // 2))
             t0 = time.time()
             log.write(json.dumps(metrics) + "\n")
             log.flush()
             g = lambda k: metrics.get(k, float("nan"))
-            bar.write(f"{step}: Eq.2 wm {g('wm_loss'):.2f} (recon {g('recon'):.2f} kl {g('kl'):.2f} open-loop {g('open_loop'):.3f}) | "
+            bar.write(f"{step}: Eq.2 wm {g('wm_loss'):.2f} (recon {g('recon'):.2f} kl {g('kl'):.2f} open-loop {g('open_loop'):.3f}, p cos {g('open_loop_p_cos'):.2f}) | "
                       f"Eq.3 goal {g('goal_loss'):.2f} (cos {g('goal_cos'):.2f}) | Eq.7 dist {g('dist_loss'):.3f} | "
                       f"Eq.4 actor {g('actor_loss'):.3f} critic {g('critic_loss'):.3f} reward {g('reward'):.3f} bc {g('bc_loss'):.2f} | {g('updates_per_s'):.1f} upd/s")
         if step % tc.checkpoint_every == 0 or step == tc.steps:

@@ -262,11 +262,10 @@ class WorldModel(nn.Module):
         return loss, metrics, post
 
     @torch.no_grad()
-    def open_loop_error(self, batch, context):
+    def open_loop(self, batch, context):
         """Observe steps [0, context), imagine [context, T) with the recorded actions from the last posterior state
-        (prior means, no sampling), and return the decoder's mean squared error per observation element there,
-        in the decoder's target space (symlog for states, [-0.5, 0.5] for pixels). Segments with an episode
-        start inside the imagined part are left out; NaN if none is left."""
+        (prior means, no sampling) -> imagined feats (B, T - context, F) and keep (B,): False for segments with an
+        episode start inside the imagined part."""
         obs, action, is_first = batch[self.cfg.obs], batch["action"], batch["is_first"]
         T = action.shape[1]
         assert 0 < context < T
@@ -276,8 +275,13 @@ class WorldModel(nn.Module):
         for t in range(context, T):
             state = self.img_step(state, action[:, t], sample=False)
             feats.append(feat(state))
-        err = self._decode_raw(torch.stack(feats, 1)) - self._target(obs[:, context:])
-        keep = ~is_first[:, context:].any(1)
+        return torch.stack(feats, 1), ~is_first[:, context:].any(1)
+
+    def open_loop_error(self, batch, context):
+        """The decoder's mean squared error per observation element on the open-loop imagined steps (open_loop),
+        in the decoder's target space (symlog for states, [-0.5, 0.5] for pixels); NaN if no segment is kept."""
+        feats, keep = self.open_loop(batch, context)
+        err = self._decode_raw(feats) - self._target(batch[self.cfg.obs][:, context:])
         return err[keep].pow(2).mean().item() if keep.any() else float("nan")
 
 

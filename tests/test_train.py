@@ -17,7 +17,7 @@ def test_smoke_run_writes_checkpoint_metrics_and_goal_reaching(smoke_run):
     assert ckpt["step"] == train.TRAIN_PRESETS["smoke"]["steps"] and ckpt["encoder"] == "default-v1"
     assert ckpt["config"]["wm"]["obs"] == "state" and ckpt["config"]["wm"]["deter"] == 16  # the smoke preset, resolved
     lines = [json.loads(l) for l in open(os.path.join(smoke_run, "metrics.jsonl"))]
-    assert [l["step"] for l in lines] == [2, 4, 6] and "actor_loss" in lines[-1] and "open_loop" in lines[-1]
+    assert [l["step"] for l in lines] == [2, 4, 6] and "actor_loss" in lines[-1] and "open_loop" in lines[-1] and -1 <= lines[-1]["open_loop_p_cos"] <= 1
     rows = json.load(open(os.path.join(smoke_run, "goal_reaching.json")))
     assert len(rows) == 2 and all(-1 <= r["policy_similarity"] <= 1 for r in rows)
 
