@@ -116,6 +116,20 @@ def open_loop_metrics(wm, vae, batch, context):
     return {"open_loop": wm.open_loop_error(batch, context), "open_loop_p_cos": cos.mean().item() if len(cos) else float("nan")}
 
 
+@torch.no_grad()
+def evaluate_imagination(models, cfgs, held_out, device, segments=64):
+    """What phase 2's OT reward rests on, on held-out D_body segments (a fixed draw, so reruns compare): the goal
+    decoder's cosine to the true p_t on world-model posterior states, and open_loop_metrics."""
+    wc, wm, vae = cfgs["wm"], models["world_model"], models["goal_vae"]
+    seed = cfgs["train"].seed + 1
+    batch = Segments(held_out, (wc.obs, "action", "is_first", "p"), wc.seq_len).sample(segments, np.random.default_rng(seed), device)
+    with torch.random.fork_rng(devices=[]):  # the posterior samples z: seeded here, the training RNG untouched
+        torch.manual_seed(seed)
+        post, _ = wm.observe(batch[wc.obs], batch["action"], batch["is_first"])
+        cos = (vae.decode(wm.feat(post)) * batch["p"]).sum(-1).mean().item()
+        return {"posterior_p_cos": cos, **open_loop_metrics(wm, vae, batch, wc.seq_len // 2)}
+
+
 def build_models(cfgs, obs_shape, action_dim, p_dim, device):
     wm = world_model.WorldModel(cfgs["wm"], obs_shape, action_dim)
     models = {
@@ -306,6 +320,11 @@ def train(cfgs, run_dir, resume):
         if step % tc.checkpoint_every == 0 or step == tc.steps:
             saved = save()
     bar.close()
+    imagination = evaluate_imagination(models, cfgs, held_out, device)
+    with open(os.path.join(run_dir, "imagination.json"), "w") as f:
+        json.dump(imagination, f, indent=1)
+    print(f"held-out D_body: goal decoder's cosine to the true p_t {imagination['posterior_p_cos']:.2f} on posterior states, "
+          f"{imagination['open_loop_p_cos']:.2f} on {wc.seq_len - wc.seq_len // 2} open-loop imagined steps (world-model error {imagination['open_loop']:.3f})")
     rows = evaluate_goal_reaching(models, cfgs, held_out, encoder, device)
     with open(os.path.join(run_dir, "goal_reaching.json"), "w") as f:
         json.dump(rows, f, indent=1)

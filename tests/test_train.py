@@ -20,6 +20,14 @@ def test_smoke_run_writes_checkpoint_metrics_and_goal_reaching(smoke_run):
     assert [l["step"] for l in lines] == [2, 4, 6] and "actor_loss" in lines[-1] and "open_loop" in lines[-1] and -1 <= lines[-1]["open_loop_p_cos"] <= 1
     rows = json.load(open(os.path.join(smoke_run, "goal_reaching.json")))
     assert len(rows) == 2 and all(-1 <= r["policy_similarity"] <= 1 for r in rows)
+    imagination = json.load(open(os.path.join(smoke_run, "imagination.json")))
+    assert set(imagination) == {"posterior_p_cos", "open_loop_p_cos", "open_loop"}
+    assert -1 <= imagination["posterior_p_cos"] <= 1 and -1 <= imagination["open_loop_p_cos"] <= 1
+    cfgs, models, _ = train.load_run(smoke_run)
+    held_out = collect.load_folder(os.path.join(cfgs["train"].data, "walker"), ("state", "action", "is_first", "p"))[:: cfgs["train"].holdout_every]
+    first = train.evaluate_imagination(models, cfgs, held_out, "cpu")
+    assert train.evaluate_imagination(models, cfgs, held_out, "cpu") == first  # a fixed draw: reruns compare
+    assert first == pytest.approx(imagination, rel=0.05)
 
 
 def test_resume_continues_and_refuses_to_overwrite(smoke_run, smoke_data, tmp_path):
