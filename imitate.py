@@ -56,7 +56,7 @@ class ImitateConfig:
     goal_space: str = "latent"  # 'latent': g is the parameter (Eq. 5); 'feature': g = q(s | p) with the video feature p the parameter (ours, finetune_goal)
     critic_warmup: int = 100  # first updates that train V_ot only, g held (ours): an untrained V_ot moves g at random
     critic_lr: float = 8e-5  # V_ot, as the phase-1 critic (Dreamer V1)
-    finetune_policy: int = 1  # 1: psi jointly finetuned by L_MG (Sec. 4); 0: the policy stays exactly psi*
+    finetune_policy: int = 0  # 0: the policy stays exactly psi* (ours: joint finetuning made the agent fall, README); 1: psi jointly finetuned by L_MG (Sec. 4)
     demo_stride: int = 5  # body starts: demo frames used per update, every 5th from a random offset (1 = all)
     seeds: int = 3  # GIIL-FT seeds (Sec. 5)
     eval_episodes: int = 1  # episodes per GIIL-ZS goal and per GIIL-FT seed

@@ -130,7 +130,7 @@ def test_every_finetuning_seed_starts_from_the_pretrained_policy(smoke_run, tmp_
         return original(models, *args)
 
     monkeypatch.setattr(imitate, "finetune_goal", recording)
-    imitate.imitate(run, "walker_run", "side", True, SMOKE, zero_shot=False)
+    imitate.imitate(run, "walker_run", "side", True, dataclasses.replace(SMOKE, finetune_policy=1), zero_shot=False)
     pretrained = sum(p.sum().item() for p in train.load_run(run)[1]["actor"].parameters())
     assert len(seen) == SMOKE.seeds and all(s == pytest.approx(pretrained, abs=1e-6) for s in seen)
 
@@ -158,6 +158,6 @@ def test_finetuning_continues_phase_1_optimisers_without_changing_them(smoke_run
     assert before, "the smoke checkpoint must hold Adam moments for the actor"
     demo_p = [np.random.default_rng(k).standard_normal((12, models["goal_vae"].feat_dim)).astype(np.float32) for k in range(2)]
     p0 = torch.nn.functional.normalize(torch.as_tensor(demo_p[0][-1]), dim=-1)
-    imitate.finetune_goal(models, cfgs, SMOKE, ot_reward.OTConfig(iters=5), p0, demo_p, 0, "cpu", states)
+    imitate.finetune_goal(models, cfgs, dataclasses.replace(SMOKE, finetune_policy=1), ot_reward.OTConfig(iters=5), p0, demo_p, 0, "cpu", states)
     after = [t for s in states["actor"]["state"].values() for t in s.values()]
     assert all(torch.equal(a, b) for a, b in zip(before, after))
