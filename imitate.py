@@ -54,6 +54,7 @@ class ImitateConfig:
     starts_from: str = "demo"  # 'demo' (Eq. 5's D_demo o q_phi) | 'body' (module docstring)
     goal_lr: float = 3e-4  # Adam on g (ours; at 3e-3 the finetuned goals scored lower, README Phase 2)
     goal_space: str = "latent"  # 'latent': g is the parameter (Eq. 5); 'feature': g = q(s | p) with the video feature p the parameter (ours, finetune_goal)
+    value_only: int = 0  # 1: Eq. 5 as written, g's gradient through V_ot alone; 0: through the OT rewards too (ours, goal_inference_loss)
     critic_warmup: int = 100  # first updates that train V_ot only, g held (ours): an untrained V_ot moves g at random
     critic_lr: float = 8e-5  # V_ot, as the phase-1 critic (Dreamer V1)
     finetune_policy: int = 0  # 0: the policy stays exactly psi* (ours: joint finetuning made the agent fall, README); 1: psi jointly finetuned by L_MG (Sec. 4)
@@ -109,7 +110,7 @@ def body_pool(models, cfgs, segments, rng, device, n=32):
     return {k: v.flatten(0, 1) for k, v in post.items()}, bc
 
 
-def goal_inference_loss(models, critic_ot, slow_ot, goal, start, demo_p, cfgs, ot_cfg, offsets=None):  # Eq. 5
+def goal_inference_loss(models, critic_ot, slow_ot, goal, start, demo_p, cfgs, ot_cfg, offsets=None, value_only=False):  # Eq. 5
     """L_GI: -lambda-returns of the OT reward of the frozen policy's imagined rollouts, differentiable in g only.
     goal (F,) the parameter; start dict of (N, .). -> (L_GI, V_ot critic loss, metrics)."""
     ac = cfgs["ac"]
@@ -119,6 +120,7 @@ def goal_inference_loss(models, critic_ot, slow_ot, goal, start, demo_p, cfgs, o
         feat, _, _ = policy.rollout(wm, actor, start, goal.expand(N, -1), ac.horizon)  # (N, H + 1, F)
         # (N, H): r^ot on arrival, differentiable in feat through the OT cost (the plan a constant, ot_reward.py)
         reward, best = ot_reward.ot_reward(vae.decode(feat[:, 1:]), demo_p, ot_cfg, offsets)
+        reward = reward.detach() if value_only else reward
         value = slow_ot(feat, None)  # (N, H + 1): V_ot(s), differentiable in feat
         returns = policy.lambda_return(reward, value, ac.gamma, ac.lambda_)  # (N, H)
     # Eq. 5: -E[sum V], the lambda-returns standing for the values as in Dreamer V1; their rewards pass g's gradient
@@ -190,7 +192,7 @@ def finetune_goal(models, cfgs, ic, ot_cfg, p_goal, demo_p, seed, device, optim_
                 start = models["goal_vae"].encode(demo_p[torch.randint(len(demo_p), (ic.starts,)), t0])
             start, offsets, demo = {k: start[k] for k in ("deter", "stoch", "mean", "std")}, t0 + 1, demo_p
         goal = current_goal()
-        gi_loss, ot_loss, metrics = goal_inference_loss(models, critic_ot, slow_ot, goal, start, demo, cfgs, ot_cfg, offsets)
+        gi_loss, ot_loss, metrics = goal_inference_loss(models, critic_ot, slow_ot, goal, start, demo, cfgs, ot_cfg, offsets, ic.value_only)
         warming_up = step < ic.critic_warmup
         for opt, loss in [(opt_ot, ot_loss)] if warming_up else [(opt_goal, gi_loss), (opt_ot, ot_loss)]:
             opt.zero_grad(set_to_none=True)

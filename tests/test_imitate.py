@@ -161,3 +161,23 @@ def test_finetuning_continues_phase_1_optimisers_without_changing_them(smoke_run
     imitate.finetune_goal(models, cfgs, dataclasses.replace(SMOKE, finetune_policy=1), ot_reward.OTConfig(iters=5), p0, demo_p, 0, "cpu", states)
     after = [t for s in states["actor"]["state"].values() for t in s.values()]
     assert all(torch.equal(a, b) for a, b in zip(before, after))
+
+
+def test_value_only_passes_no_gradient_through_the_rewards(smoke_run):
+    """With a constant V_ot, Eq. 5 as written (value_only) gives g no gradient; ours still does, through r^ot."""
+    cfgs, models, _ = train.load_run(smoke_run)
+    feat_dim = models["world_model"].feat_dim
+    critic_ot, slow_ot = imitate.policy.make_critics(cfgs["ac"], feat_dim, 0)
+    for p in slow_ot.parameters():
+        p.data.zero_()  # V_ot(s) = 0 everywhere
+    pool, _ = imitate.body_pool(models, cfgs, imitate.body_segments(cfgs), np.random.default_rng(0), "cpu", n=2)
+    start = {k: v[:6] for k, v in pool.items()}
+    demo_p = torch.nn.functional.normalize(torch.randn(2, 12, models["goal_vae"].feat_dim), dim=-1)
+    grads = []
+    for value_only in (True, False):
+        goal = torch.nn.Parameter(torch.randn(feat_dim))
+        torch.manual_seed(0)
+        gi = imitate.goal_inference_loss(models, critic_ot, slow_ot, goal, start, demo_p, cfgs, ot_reward.OTConfig(iters=5), value_only=value_only)[0]
+        gi.backward()
+        grads.append(goal.grad.abs().sum().item())
+    assert grads[0] == 0 and grads[1] > 0
