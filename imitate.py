@@ -5,9 +5,13 @@ GIIL-ZS  g = goal encoder(p_T), p_T the last video feature of a demo (Sec. 4); e
 GIIL-FT  from the first demo's zero-shot goal, g is optimised by L_GI (Eq. 5): imagined rollouts of the
          frozen policy pi(a | s, g), per-step OT reward between the goal decoder's features of the imagined
          states and the demos (ot_reward.py), a value V_ot(s) trained on TD(lambda) targets of that reward,
-         and the lambda-returns maximised through the dynamics with respect to g only. Jointly, psi is
-         finetuned by L_MG (Eq. 4) with g among its goals (Sec. 4, last paragraph): stop-gradients keep g
-         out of L_MG and psi out of L_GI. 3 seeds.
+         and the lambda-returns maximised through the dynamics with respect to g only. With
+         `--finetune-policy 1`, psi is finetuned jointly by L_MG (Eq. 4) with g among its goals (Sec. 4, last
+         paragraph): stop-gradients keep g out of L_MG and psi out of L_GI. 3 seeds.
+
+Deviations (measured in README, Phase 2): g's gradient flows through the OT rewards of the lambda-returns as well
+as through V_ot (`--value-only 1`: V_ot alone, as Eq. 5 writes it); psi stays frozen by default (joint finetuning
+made the agent fall in episodes where the frozen policy did not).
 
 Choices where the paper is silent (README, "Deviations"):
 * start states of the goal-inference imagination: `--starts-from demo` (default) maps demo features into
@@ -15,6 +19,7 @@ Choices where the paper is silent (README, "Deviations"):
   start states, and matches the imagined steps against the demo frames that follow (ot_reward's windowed
   matching); `body` draws them from the world model's posterior on D_body segments: states the agent can
   be in, from which the policy must perform the task (our first default; worse in README's measurements).
+* what g is: `--goal-space latent` (default) optimises g itself; `feature` a video feature p with g = q(s | p).
 * a segment against a 500-step demo: whole-demo OT (ot_reward.py) against every demo, the best one
   counting (ROT); for speed, each update uses every `demo_stride`-th demo frame from a random offset
   (the features are of 8-frame windows, so neighbouring frames are alike; the random offset keeps a
