@@ -111,9 +111,9 @@ class Segments:
 def open_loop_metrics(wm, vae, batch, context):
     """Imagination quality: the world model's open-loop error (Eq. 2's decoder) and the cosine between the goal decoder's
     features of the open-loop imagined states and the true p_t, what phase 2's OT reward reads (0 to 1, 1 = exact)."""
-    feats, keep = wm.open_loop(batch, context)
+    feats, keep = imagined = wm.open_loop(batch, context)  # imagined once, read by both decoders
     cos = (vae.decode(feats) * batch["p"][:, context:]).sum(-1)[keep]
-    return {"open_loop": wm.open_loop_error(batch, context), "open_loop_p_cos": cos.mean().item() if len(cos) else float("nan")}
+    return {"open_loop": wm.open_loop_error(batch, context, imagined), "open_loop_p_cos": cos.mean().item() if len(cos) else float("nan")}
 
 
 @torch.no_grad()

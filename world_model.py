@@ -277,10 +277,11 @@ class WorldModel(nn.Module):
             feats.append(feat(state))
         return torch.stack(feats, 1), ~is_first[:, context:].any(1)
 
-    def open_loop_error(self, batch, context):
-        """The decoder's mean squared error per observation element on the open-loop imagined steps (open_loop),
-        in the decoder's target space (symlog for states, [-0.5, 0.5] for pixels); NaN if no segment is kept."""
-        feats, keep = self.open_loop(batch, context)
+    def open_loop_error(self, batch, context, imagined=None):
+        """The decoder's mean squared error per observation element on the open-loop imagined steps (open_loop,
+        or `imagined`, its output for this batch when already computed), in the decoder's target space (symlog
+        for states, [-0.5, 0.5] for pixels); NaN if no segment is kept."""
+        feats, keep = imagined or self.open_loop(batch, context)
         err = self._decode_raw(feats) - self._target(batch[self.cfg.obs][:, context:])
         return err[keep].pow(2).mean().item() if keep.any() else float("nan")
 
