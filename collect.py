@@ -76,12 +76,12 @@ def episode_jobs(body, cfg, data):
     return out
 
 
-def demo_jobs(cfg, data):
-    """D_demo: one simulation per (body, task, index), written to both views' folders."""
+def demo_jobs(cfg, data, bodies=envs.BODIES):
+    """D_demo of `bodies`: one simulation per (body, task, index), written to both views' folders."""
     import experts
 
     out = []
-    for body in envs.BODIES:
+    for body in bodies:
         for task in envs.TASKS:
             if not os.path.exists(experts.expert_path(body, task)):
                 raise FileNotFoundError(f"no final {body} {task} expert at {experts.expert_path(body, task)}: train it with `python experts.py --body {body}`")
@@ -245,8 +245,8 @@ def collect_body(body, cfg, data="data", workers=2, encoder="default"):
     return os.path.join(data, body)
 
 
-def collect_demos(cfg, data="data", workers=2, encoder="default"):
-    run_jobs(demo_jobs(cfg, data), encoder, workers, "D_demo")
+def collect_demos(cfg, data="data", workers=2, encoder="default", bodies=envs.BODIES):
+    run_jobs(demo_jobs(cfg, data, bodies), encoder, workers, "D_demo")
     return os.path.join(data, "demos")
 
 

@@ -17,6 +17,16 @@ segment that runs into the next episode keeps its first episode's id: rare, and 
 episode is the other segment's). Eq. 7 is a sum of two expectations, so each term is a mean over its own pairs
 and the two are weighted equally (contrastive_weight = 1); LEXA instead mixes ~10% negatives into one mean,
 i.e. a weight of about 0.11.
+
+Which goals d is trained on (ours; the paper trains d on pairs of posterior states only). The policy is given
+goals from the goal encoder, g = q(s | p_j) (GIIL-ZS feeds it q(s | p_T) of a demo), and a d trained on posterior
+pairs alone cannot rank those: on a walker run it gave d = 0.64 / 0.62 / 0.63 / 0.66 for encoder goals 1 / 5 / 15 /
+30 steps ahead (Eq. 6's targets 0.02 / 0.10 / 0.30 / 0.60), so -d was flat and Eq. 4 taught the policy nothing.
+With `encoder_goals` (default) every pair is scored twice, with the later state as the world model's posterior
+feat_j and as the goal encoder's g_j of the same frame, against the same Eq. 6 target. The posterior's h_t also
+carries the episode's history, which lets d answer "same trajectory?" instead of "how far?"; g_j is read from an
+8-frame video window and has no such shortcut. contrastive_weight 0.1 (LEXA's share of negatives) in the cpu
+preset: with the paper's equal weight the negatives dominate the loss (docs/experiments.md).
 """
 from dataclasses import dataclass
 
@@ -32,11 +42,12 @@ class DistanceConfig:
     layers: int = 4  # LEXA
     pairs: int = 1024  # candidate pairs of each kind (same / different trajectory) per batch (ours)
     contrastive_weight: float = 1.0  # Eq. 7 weighs both expectations equally (LEXA's 10% negatives ~ 0.11)
+    encoder_goals: int = 1  # 1: also fit d(s_i, g_j) with g_j the goal encoder's goal of frame j (ours); 0: Eq. 7 alone
     lr: float = 3e-4  # Adam (ours: the usual rate for a small MLP)
     grad_clip: float = 100.0  # global gradient norm, as the world model (Dreamer V1)
 
 
-PRESETS = {"smoke": dict(units=16, layers=2, pairs=64), "cpu": dict(), "paper": dict()}
+PRESETS = {"smoke": dict(units=16, layers=2, pairs=64), "cpu": dict(contrastive_weight=0.1), "paper": dict()}
 
 
 class DistanceNet(nn.Module):
@@ -70,21 +81,43 @@ def sample_pairs(episode, is_first, num, generator=None):
     return {"pos": pos, "neg": neg}
 
 
-def distance_loss(dist_net, feat, pairs, horizon_T, contrastive_weight=1.0):  # Eq. 7
-    """feat (B, T, F) posterior features, pairs from sample_pairs, horizon_T = T of Eq. 6 -> (loss, metrics).
-    The features are detached: the distance network learns on the world model's states, never shapes them."""
+def distance_loss(dist_net, feat, pairs, horizon_T, contrastive_weight=1.0, goal_feat=None):  # Eq. 7
+    """feat (B, T, F) posterior features, pairs from sample_pairs, horizon_T = T of Eq. 6, goal_feat (B, T, F) the goal
+    encoder's goals of the same frames or None -> (loss, metrics). With goal_feat, each pair's later state is also
+    given as its encoder goal (module docstring) and the loss is the mean of both. Inputs are detached: the distance
+    network learns on the world model's states and goals, never shapes them."""
     feat = feat.detach()
     b, i, j = pairs["pos"]
-    target = (j - i).to(feat.dtype) / horizon_T  # Eq. 6: D^dis(s_i, s_j) = (j - i) / T
-    d_pos = dist_net(feat[b, i], feat[b, j])  # (P,)
-    regression = ((d_pos - target) ** 2).mean()
     b1, t1, b2, t2 = pairs["neg"]
-    d_neg = dist_net(feat[b1, t1], feat[b2, t2])  # (Q,)
-    contrastive = ((d_neg - 1) ** 2).sum() / max(len(d_neg), 1)  # + E ||d - 1||^2: Eq. 7 with its sign read as + (module docstring)
-    loss = regression + contrastive_weight * contrastive
-    metrics = {"dist_loss": loss.item(), "dist_regression": regression.item(), "dist_contrastive": contrastive.item(),
-               "dist_pos": d_pos.mean().item(), "dist_neg": d_neg.mean().item() if len(d_neg) else float("nan")}
+    target = (j - i).to(feat.dtype) / horizon_T  # Eq. 6: D^dis(s_i, s_j) = (j - i) / T
+    goals = {"": feat} if goal_feat is None else {"": feat, "_enc": goal_feat.detach()}
+    loss, metrics = 0.0, {}
+    for name, goal in goals.items():
+        d_pos = dist_net(feat[b, i], goal[b, j])  # (P,)
+        regression = ((d_pos - target) ** 2).mean()
+        d_neg = dist_net(feat[b1, t1], goal[b2, t2])  # (Q,)
+        contrastive = ((d_neg - 1) ** 2).sum() / max(len(d_neg), 1)  # + E ||d - 1||^2: Eq. 7 with its sign read as + (module docstring)
+        loss = loss + (regression + contrastive_weight * contrastive) / len(goals)
+        metrics.update({f"dist_regression{name}": regression.item(), f"dist_contrastive{name}": contrastive.item(),
+                        f"dist_pos{name}": d_pos.mean().item(), f"dist_neg{name}": d_neg.mean().item() if len(d_neg) else float("nan")})
+    metrics["dist_loss"] = loss.item()
     return loss, metrics
+
+
+@torch.no_grad()
+def distance_profile(dist_net, feat, goal_feat, is_first, t0=10, ahead=(1, 5, 15, 30)):
+    """The diagnostic of the module docstring: mean d(s_t0, goal) for goals `ahead` steps later in the same segment, as
+    posterior feats and as encoder goals, and for another segment's frame (the last value). feat, goal_feat (B, T, F),
+    is_first (B, T) -> {'d_post': [...], 'd_enc': [...]}, each len(ahead) + 1 floats (NaN where no segment qualifies)."""
+    B, T, _ = feat.shape
+    assert t0 + max(ahead) < T, (t0, ahead, T)
+    whole = ~is_first[:, t0 + 1 :].any(1)  # segments with no episode start after t0
+    out = {}
+    for name, goal in (("d_post", feat), ("d_enc", goal_feat)):
+        d = [dist_net(feat[whole, t0], goal[whole, t0 + k]).mean().item() for k in ahead]
+        d.append(dist_net(feat[:, t0], goal.roll(1, 0)[:, t0 + ahead[0]]).mean().item())  # another segment's frame
+        out[name] = d
+    return out
 
 
 def bench_update(preset="cpu"):
@@ -95,12 +128,12 @@ def bench_update(preset="cpu"):
     feat_dim = wm.deter + wm.stoch
     dist_net = DistanceNet(cfg, feat_dim)
     B, T = wm.batch, wm.seq_len
-    feat, episode = torch.randn(B, T, feat_dim), torch.arange(B)
+    feat, goal_feat, episode = torch.randn(B, T, feat_dim), torch.randn(B, T, feat_dim), torch.arange(B)
     is_first = torch.zeros(B, T, dtype=torch.bool)
     opt = torch.optim.Adam(dist_net.parameters(), lr=cfg.lr)
 
     def update():
-        loss = distance_loss(dist_net, feat, sample_pairs(episode, is_first, cfg.pairs), T, cfg.contrastive_weight)[0]
+        loss = distance_loss(dist_net, feat, sample_pairs(episode, is_first, cfg.pairs), T, cfg.contrastive_weight, goal_feat if cfg.encoder_goals else None)[0]
         opt.zero_grad(set_to_none=True)
         loss.backward()
         nn.utils.clip_grad_norm_(dist_net.parameters(), cfg.grad_clip)

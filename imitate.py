@@ -43,6 +43,7 @@ from tqdm import tqdm
 
 import collect
 import envs
+import evaluate
 import ot_reward
 import policy
 import train
@@ -252,10 +253,10 @@ def imitate(run_dir, demo, view, finetune, ic, zero_shot=True):
         scores = []
         for e in range(ic.eval_episodes):
             render = bool(ic.video) and e == 0
-            ret, frames = train.run_episode(env, models, goal, ic.eval_steps, cfgs["wm"].obs, 20_000 + 100 * seed + e, render)
-            scores.append(float(envs.normalized_score(task, ret * envs.EPISODE_STEPS / ic.eval_steps)))
+            returns, frames = evaluate.run_episodes([env], models, goal[None], ic.eval_steps, cfgs["wm"].obs, 20_000 + 100 * seed + e, render)
+            scores.append(evaluate.episode_score(task, returns[0], ic.eval_steps))
             if render:
-                write_video(os.path.join(out_dir, f"{demo}_{view}_{method}_s{seed}.mp4"), video_demo, frames)
+                write_video(os.path.join(out_dir, f"{demo}_{view}_{method}_s{seed}.mp4"), video_demo, frames[0])
         row = {"agent": tc.env, "demo": demo, "view": view, "task": task, "setting": where, "method": method, "seed": seed,
                "score": float(np.mean(scores)), "episode_scores": scores, "time": round(time.time() - t0, 1), "demo_returns": demo_returns,
                "config": result_config(ic, method)}

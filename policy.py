@@ -47,6 +47,7 @@ class ActorCriticConfig:
     return_norm_decay: float = 0.99  # EMA decay of the 5-95 percentile range of returns, Dreamer V3
     starts: int = 2500  # imagination start states per update: Dreamer V1 starts from all 50x50 posterior states
     goal_mix: float = 0.5  # share of goals from the goal encoder, the rest D_body posterior states (ours; sample_goals)
+    goal_near: float = 0.0  # share of goals from a later frame of the start state's own segment, the rest anywhere in the batch (ours; sample_goals)
     bc: float = 0.0  # weight of hindsight goal-conditioned behaviour cloning on D_body (ours, bc_loss; 0 = Eq. 4 alone)
     bc_final: float = 0.0  # share of bc_loss's goals taken from the episode's last frame instead of a later frame of the segment (ours)
 
@@ -56,7 +57,8 @@ PRESETS = {
     # ours: an update costs time linear in starts (~1 s for all 800 states of a 16x50 batch on one core)
     # bc: on a CPU budget (~2k actor updates) Eq. 4 alone did not learn to reach goals (README, Deviations)
     # bc_final: evaluation and GIIL-ZS give the goal of an episode's last frame (README, Phase 1)
-    "cpu": dict(units=256, actor_layers=2, critic_layers=2, starts=256, actor_lr=3e-4, bc=1.0, bc_final=0.5),
+    # goal_near: goals the policy can reach inside the horizon, so -d(s, g) varies with what it does (README, Phase 1)
+    "cpu": dict(units=256, actor_layers=2, critic_layers=2, starts=256, actor_lr=3e-4, critic_lr=3e-4, bc=1.0, bc_final=0.5, goal_near=0.5),
     "paper": dict(units=1024, horizon=16, starts=48 * 48),  # GenRL: horizon 16, all states of a 48x48 batch (FACTS.md)
 }
 
@@ -84,18 +86,29 @@ class Actor(nn.Module):
         self.cfg, self.goal_dim = cfg, goal_dim
         self.net = mlp(feat_dim + goal_dim, cfg.units, 2 * action_dim, cfg.actor_layers)
 
-    def distribution(self, feat, goal):
-        """The Gaussian before the tanh: feat (N, F), goal (N, G) or (1, G) -> mean, std (N, A)."""
+    def goal_input(self, goal):
+        """The goal's share of the first layer, W_g g + b: (N, G) or (1, G) -> (N, units). It is the same at every
+        imagined step, so rollout computes it once (the first layer reads [feat, goal]: W [f; g] + b = W_f f + W_g g + b)."""
+        assert goal.shape[-1] == self.goal_dim and goal.dim() == 2, goal.shape
+        first = self.net[0]
+        return F.linear(goal, first.weight[:, -self.goal_dim :], first.bias)
+
+    def distribution(self, feat, goal, goal_in=None):
+        """The Gaussian before the tanh: feat (N, F), goal (N, G) or (1, G) -> mean, std (N, A).
+        goal_in: goal_input(goal) when already computed."""
         cfg = self.cfg
-        assert goal.shape[-1] == self.goal_dim and goal.dim() == feat.dim() == 2, (feat.shape, goal.shape)
-        mean, std = self.net(with_goal(feat, goal)).chunk(2, -1)
+        assert feat.dim() == 2, feat.shape
+        goal_in = self.goal_input(goal) if goal_in is None else goal_in
+        first = self.net[0]
+        x = F.linear(feat, first.weight[:, : first.in_features - self.goal_dim]) + goal_in  # (N, units)
+        mean, std = self.net[1:](x).chunk(2, -1)
         mean = cfg.mean_scale * torch.tanh(mean / cfg.mean_scale)
         std = (cfg.max_std - cfg.min_std) * torch.sigmoid(std + 2.0) + cfg.min_std  # Dreamer V3's bounded std
         return mean, std
 
-    def forward(self, feat, goal, deterministic=False):
+    def forward(self, feat, goal, deterministic=False, goal_in=None):
         """feat (N, F), goal (N, G) -> action (N, A) in [-1, 1], log pi(action | s, g) (N,) (None if deterministic)."""
-        mean, std = self.distribution(feat, goal)
+        mean, std = self.distribution(feat, goal, goal_in)
         if deterministic:
             return torch.tanh(mean), None
         u = mean + std * torch.randn_like(mean)  # reparameterised: the actor loss differentiates through the sample
@@ -155,23 +168,33 @@ def ema_update(slow, fast, rate):
 
 def sample_starts(post, n, generator=None):
     """n distinct random posterior states of a batch as imagination starts (all of them if n >= B * T):
-    post dict of (B, T, .) -> dict of (n, .), detached."""
+    post dict of (B, T, .) -> dict of (n, .), detached, and their flat indices (n,) into B * T."""
     flat = {k: v.detach().flatten(0, 1) for k, v in post.items()}
     index = torch.randperm(len(flat["deter"]), generator=generator)[:n].to(flat["deter"].device)
-    return {k: v[index] for k, v in flat.items()}
+    return {k: v[index] for k, v in flat.items()}, index
 
 
-def sample_goals(post_feat, encoded_goal, n, mix, generator=None):
-    """Goals for pretraining, the choice DESIGN.md leaves open (ours): each of the n goals is a random D_body frame,
-    taken with probability `mix` as the goal encoder's g = q(s | p_t) means and otherwise as the world model's
-    posterior feat. Posterior states are what the distance network is trained on, so -d(s, g) is meaningful
-    there; goal-encoder outputs are what phase 2 feeds the frozen policy (GIIL-ZS: g = encode(p_T)), so the policy
-    must have learnt to reach them. post_feat, encoded_goal (M, F) -> (n, F), detached."""
-    M = len(post_feat)
-    assert encoded_goal.shape == post_feat.shape and post_feat.dim() == 2, (post_feat.shape, encoded_goal.shape)
-    index = torch.randint(M, (n,), generator=generator).to(post_feat.device)
-    from_encoder = (torch.rand(n, 1, generator=generator) < mix).to(post_feat.device)
-    return torch.where(from_encoder, encoded_goal[index], post_feat[index]).detach()
+def sample_goals(post_feat, encoded_goal, start_index, is_first, mix, near, generator=None):
+    """Goals for pretraining, the choice the paper leaves open (ours). For each start state (flat index into B * T),
+    with probability `near` a later frame of its own segment (never across an episode start), the frame it would
+    reach by acting as the data did: a goal it can reach and whose -d changes with what it does; otherwise any
+    frame of the batch, mostly another episode's (as `near` = 0, our first version, did for all goals). The goal is
+    the goal encoder's g = q(s | p_j) with probability `mix` (what phase 2 feeds the frozen policy: GIIL-ZS's
+    g = q(s | p_T)), else the world model's posterior feat_j. post_feat, encoded_goal (B, T, F), start_index (n,),
+    is_first (B, T) -> (n, F), detached."""
+    B, T, _ = post_feat.shape
+    assert encoded_goal.shape == post_feat.shape and is_first.shape == (B, T), (post_feat.shape, encoded_goal.shape, is_first.shape)
+    n, device = len(start_index), post_feat.device
+    rand = lambda *shape: torch.rand(*shape, generator=generator).to(device)
+    b, t = start_index // T, start_index % T
+    later = t + 1 + (rand(n) * (T - 1 - t)).long()  # uniform in (t, T - 1]; = T where t = T - 1
+    part = is_first.long().cumsum(1)  # (B, T): which episode of the segment each step is in
+    reachable = (later < T) & (part[b, later.clamp(max=T - 1)] == part[b, t])
+    use_near = reachable & (rand(n) < near)
+    far = (rand(n) * B * T).long()  # any frame of the batch
+    index = torch.where(use_near, b * T + later.clamp(max=T - 1), far)
+    from_encoder = rand(n, 1) < mix
+    return torch.where(from_encoder, encoded_goal.flatten(0, 1)[index], post_feat.flatten(0, 1)[index]).detach()
 
 
 def rollout(world_model, actor, start, goal, horizon):
@@ -180,8 +203,10 @@ def rollout(world_model, actor, start, goal, horizon):
     start = {k: v.detach() for k, v in start.items()}
     log_probs = []
 
+    goal_in = actor.goal_input(goal)  # once for all steps
+
     def policy_fn(feat):
-        action, log_prob = actor(feat.detach(), goal)  # the actor reads sg(feat), as Dreamer V1/V2
+        action, log_prob = actor(feat.detach(), goal, goal_in=goal_in)  # the actor reads sg(feat), as Dreamer V1/V2
         log_probs.append(log_prob)
         return action
 
@@ -282,12 +307,12 @@ def bench_update(preset="cpu", obs_dim=24, action_dim=6):
     batch = random_batch(wm_cfg.obs, obs_shape, action_dim, wm_cfg.batch, wm_cfg.seq_len)
     with torch.no_grad():
         post, _ = world_model.observe(batch[wm_cfg.obs], batch["action"], batch["is_first"])
-    post_feat = world_model.feat(post).flatten(0, 1)  # (B * T, F)
+    post_feat = world_model.feat(post)  # (B, T, F)
     opts = [torch.optim.Adam(actor.parameters(), lr=cfg.actor_lr), torch.optim.Adam(critic.parameters(), lr=cfg.critic_lr)]
 
     def update():
-        start = sample_starts(post, cfg.starts)
-        goal = sample_goals(post_feat, post_feat, len(start["deter"]), cfg.goal_mix)
+        start, index = sample_starts(post, cfg.starts)
+        goal = sample_goals(post_feat, post_feat, index, batch["is_first"], cfg.goal_mix, cfg.goal_near)
         a_loss, c_loss, _ = policy_losses(world_model, dist_net, actor, critic, slow_critic, return_norm, start, goal, cfg)
         for opt in opts:
             opt.zero_grad(set_to_none=True)
@@ -297,4 +322,4 @@ def bench_update(preset="cpu", obs_dim=24, action_dim=6):
             opt.step()
         ema_update(slow_critic, critic, cfg.slow_critic_rate)
 
-    return update, f"actor-critic update, {preset} preset, {min(cfg.starts, len(post_feat))} starts x {cfg.horizon} imagined steps"
+    return update, f"actor-critic update, {preset} preset, {min(cfg.starts, post_feat.shape[0] * post_feat.shape[1])} starts x {cfg.horizon} imagined steps"

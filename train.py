@@ -3,14 +3,14 @@
 One update, in the order of Sec. 4:
   Eq. 2  world model (RSSM) on a batch of D_body segments            -> posterior states s_t
   Eq. 3  goal VAE q(s | p_t), p(p_t | s) against sg(posterior)
-  Eq. 7  temporal distance network on pairs of posterior states
+  Eq. 7  temporal distance network on pairs of posterior states (and of states and encoder goals, ours)
   Eq. 4  goal-conditioned actor-critic in imagination, reward -d(s, g)   (after `policy_start` updates,
          once the world model and distance give a meaningful reward)
-Ends with the multi-task policy in the real environment: goals from held-out D_body episodes
-(g = goal encoder of the episode's last video feature, as GIIL-ZS does with a demo), against a
-random policy in the same run (evaluate_goal_reaching).
+Ends with the learning curve (learning_curve.png) and the goal-reaching benchmark (evaluate.py): the multi-task
+policy in the real environment with its own body's side-view demos as goals, against random actions.
 
     python train.py --env walker [--obs state|pixels] [--preset smoke|cpu|paper] [--seed N] [--resume]
+    python train.py --env walker --evaluate [--run-dir runs/<name>]   # the benchmark alone, of a trained run
 """
 import argparse
 import dataclasses
@@ -25,6 +25,7 @@ from tqdm import tqdm
 import collect
 import distance
 import envs
+import evaluate
 import goal_vae
 import policy
 import world_model
@@ -38,9 +39,9 @@ class TrainConfig:
     seed: int = 0
     steps: int = 3000  # updates (ours, cpu: ~25 min on 2 cores; Dreamer-scale runs use ~1e5 and more)
     policy_start: int = 1000  # updates of the models before the actor-critic starts (ours)
-    holdout_every: int = 20  # every 20th D_body episode is held out of training, for the goal-reaching evaluation
-    eval_goals: int = 10  # held-out episodes used as goals at the end
-    eval_steps: int = 250  # env steps per goal-reaching episode
+    holdout_every: int = 20  # every 20th D_body episode is held out of training, for evaluate_imagination
+    eval_episodes: int = 3  # goal-reaching benchmark (evaluate.py): episodes per own-body demo goal
+    eval_steps: int = 500  # agent steps per goal-reaching episode (a whole episode)
     log_every: int = 100
     checkpoint_every: int = 250
     data: str = "data"
@@ -49,9 +50,9 @@ class TrainConfig:
 
 
 TRAIN_PRESETS = {
-    "smoke": dict(steps=6, policy_start=2, holdout_every=3, eval_goals=2, eval_steps=10, log_every=2, checkpoint_every=3),
+    "smoke": dict(steps=6, policy_start=2, holdout_every=3, eval_episodes=1, eval_steps=10, log_every=2, checkpoint_every=3),
     "cpu": dict(),
-    "paper": dict(steps=100_000, policy_start=5_000, eval_steps=500, log_every=1000, checkpoint_every=5000),
+    "paper": dict(steps=100_000, policy_start=5_000, log_every=1000, checkpoint_every=5000),
 }
 # every component's config class, presets and flag prefix ('' = no prefix)
 COMPONENTS = {
@@ -62,7 +63,7 @@ COMPONENTS = {
     "ac": (policy.ActorCriticConfig, policy.PRESETS, "ac-"),
 }
 # fields that may differ when a run is resumed: they do not change what the models are
-RESUMABLE = {"steps", "log_every", "checkpoint_every", "eval_goals", "eval_steps", "data", "threads"}
+RESUMABLE = {"steps", "log_every", "checkpoint_every", "eval_episodes", "eval_steps", "data", "threads"}
 
 
 def add_config_flags(parser):
@@ -130,6 +131,17 @@ def evaluate_imagination(models, cfgs, held_out, device, segments=64):
         return {"posterior_p_cos": cos, **open_loop_metrics(wm, vae, batch, wc.seq_len // 2)}
 
 
+def log_line(m):
+    """One line per log step, grouped by equation; the actor-critic's part only once it has started."""
+    line = (f"{m['step']}: Eq.2 wm {m['wm_loss']:.2f} (recon {m['recon']:.2f} kl {m['kl']:.2f} open-loop {m['open_loop']:.3f}, "
+            f"p cos {m['open_loop_p_cos']:.2f}) | Eq.3 goal {m['goal_loss']:.2f} (cos {m['goal_cos']:.2f}) | Eq.7 dist {m['dist_loss']:.3f}")
+    if "d_enc" in m:
+        line += " (d of encoder goals 1/5/15/30 ahead, other: " + " ".join(f"{d:.2f}" for d in m["d_enc"]) + ")"
+    if "actor_loss" in m:
+        line += f" | Eq.4 actor {m['actor_loss']:.3f} critic {m['critic_loss']:.3f} reward {m['reward']:.3f}" + (f" bc {m['bc_loss']:.2f}" if "bc_loss" in m else "")
+    return line + f" | {m['updates_per_s']:.1f} upd/s"
+
+
 def build_models(cfgs, obs_shape, action_dim, p_dim, device):
     wm = world_model.WorldModel(cfgs["wm"], obs_shape, action_dim)
     models = {
@@ -162,54 +174,15 @@ def atomic_save(obj, path):
     os.replace(tmp, path)
 
 
-@torch.no_grad()
-def run_episode(env, models, goal, steps, obs_key, seed, render=False, random_actions=False):
-    """Act in the real env with pi(a | s_t, g), s_t filtered online by the world model's posterior (T = 1 observe
-    calls). goal (F,), unused with random_actions. -> (return, frames (steps + 1, 64, 64, 3) if render else None)."""
-    wm, actor = models["world_model"], models["actor"]
-    device = next(wm.parameters()).device
-    rng = np.random.default_rng(seed)
-    torch.manual_seed(seed)  # the posterior samples z_t: the same seed gives the same episode
-    obs, _ = env.reset(seed=seed)
-    action = np.zeros(env.action_dim, np.float32)
-    state, total, frames = None, 0.0, []
-    for t in range(steps + 1):
-        if render or obs_key == "pixels":
-            frames.append(env.render())
-        o = torch.as_tensor(frames[-1] if obs_key == "pixels" else obs, device=device)[None, None]
-        post, _ = wm.observe(o, torch.as_tensor(action, device=device)[None, None], torch.tensor([[t == 0]], device=device), state)
-        state = {k: v[:, -1] for k, v in post.items()}
-        if t == steps:
-            break
-        if random_actions:
-            action = rng.uniform(-1, 1, env.action_dim).astype(np.float32)
-        else:
-            action = actor(wm.feat(state), goal[None], deterministic=True)[0][0].cpu().numpy()
-        obs, reward, _, _, _ = env.step(action)
-        total += reward
-    return total, (np.array(frames) if render else None)
-
-
-def evaluate_goal_reaching(models, cfgs, held_out, encoder, device):
-    """The multi-task policy in the real env. Each goal: a held-out D_body episode's last feature p_T, g = goal
-    encoder(p_T). Measured from the agent's own rendered video: the cosine similarity between its features over the
-    second half of the episode and p_T; where the episode came from a task expert, also that task's normalised
-    score. The same for uniform random actions with the same seeds."""
+def report_goal_reaching(run_dir, models, cfgs, device):
+    """evaluate.goal_reaching, printed as a table and written to runs/<name>/goal_reaching.json."""
     tc = cfgs["train"]
-    rows = []
-    for k, episode in enumerate(tqdm(held_out[: tc.eval_goals], desc="goal reaching")):
-        p_goal = episode["p"][-1]
-        task = episode["task"] if episode["task"] in envs.TASKS else "stand"
-        env = envs.make_env(tc.env, task)
-        goal = models["goal_vae"].goal(torch.as_tensor(p_goal, device=device))
-        row = {"source": episode["source"], "task": episode["task"]}
-        for name, random_actions in (("policy", False), ("random", True)):
-            ret, frames = run_episode(env, models, goal, tc.eval_steps, cfgs["wm"].obs, 10_000 + k, True, random_actions)
-            p = encoder(frames)  # (steps + 1, D): what the agent's own video shows
-            row[f"{name}_similarity"] = float((p[len(p) // 2 :] @ p_goal).mean())
-            row[f"{name}_score"] = float(envs.normalized_score(task, ret * envs.EPISODE_STEPS / tc.eval_steps))
-        rows.append(row)
-    return rows
+    scores = evaluate.goal_reaching(models, cfgs, tc.eval_episodes, tc.eval_steps, device=device)
+    print(f"goal reaching, {tc.env}: own side-view demos as goals (g = q(s | p_T)), {tc.eval_episodes} episodes per demo, "
+          f"{tc.eval_steps} steps, normalised score (Eq. 8) mean +- s.e.")
+    print("\n".join(evaluate.summary(scores)))
+    print("wrote", evaluate.write_goal_reaching(run_dir, scores))
+    return scores
 
 
 def train(cfgs, run_dir, resume):
@@ -223,6 +196,9 @@ def train(cfgs, run_dir, resume):
     if not os.path.isdir(folder) or not os.listdir(folder):
         print(f"D_body missing at {folder}: collecting it (python collect.py --env {tc.env} --preset {tc.preset})")
         collect.collect_body(tc.env, collect.CollectConfig(**collect.PRESETS[tc.preset]), tc.data, os.cpu_count(), tc.encoder)
+    if not all(os.path.isdir(os.path.join(tc.data, "demos", f"{tc.env}_{task}_side")) for task in envs.TASKS):
+        print(f"{tc.env}'s own demos (the goals of the goal-reaching benchmark, evaluate.py) missing: collecting them")
+        collect.collect_demos(collect.CollectConfig(**collect.PRESETS[tc.preset]), tc.data, os.cpu_count(), tc.encoder, bodies=(tc.env,))
     encoder = load_encoder(tc.encoder)
     episodes = collect.load_folder(folder, (wc.obs, "action", "is_first", "p"), encoder=encoder.name)
     held_out = episodes[:: tc.holdout_every]
@@ -287,19 +263,22 @@ def train(cfgs, run_dir, resume):
         loss, m = vae.loss(batch["p"], post)  # Eq. 3
         apply("goal_vae", loss, "Eq. 3 goal-VAE loss")
         metrics.update(m)
+        post_feat = wm.feat(post).detach()  # (B, T, F)
+        with torch.no_grad():
+            goal_feat = vae.goal(batch["p"])  # (B, T, F): the goal encoder's g of every frame, what GIIL-ZS feeds the policy
         pairs = distance.sample_pairs(batch["episode"], batch["is_first"], cfgs["dist"].pairs)
-        loss, m = distance.distance_loss(dist_net, wm.feat(post), pairs, wc.seq_len, cfgs["dist"].contrastive_weight)  # Eq. 7
+        loss, m = distance.distance_loss(dist_net, post_feat, pairs, wc.seq_len, cfgs["dist"].contrastive_weight,
+                                         goal_feat if cfgs["dist"].encoder_goals else None)  # Eq. 7
         apply("dist_net", loss, "Eq. 7 distance loss")
         metrics.update(m)
         if step >= tc.policy_start:  # Eq. 4
-            start = policy.sample_starts(post, ac.starts)
-            with torch.no_grad():
-                goals = policy.sample_goals(wm.feat(post).flatten(0, 1), vae.goal(batch["p"]).flatten(0, 1), len(start["deter"]), ac.goal_mix)
+            start, index = policy.sample_starts(post, ac.starts)
+            goals = policy.sample_goals(post_feat, goal_feat, index, batch["is_first"], ac.goal_mix, ac.goal_near)
             a_loss, c_loss, m = policy.policy_losses(wm, dist_net, models["actor"], models["critic"], models["slow_critic"], models["return_norm"], start, goals, ac)
             if ac.bc:
                 with torch.no_grad():
-                    goal_feat, final_goal = vae.goal(batch["p"]), vae.goal(batch["p_last"])  # (B, T, F), (B, F)
-                bc, bc_metrics = policy.bc_loss(models["actor"], wm.feat(post), goal_feat, batch["action"], final_goal, ac.bc_final)
+                    final_goal = vae.goal(batch["p_last"])  # (B, F)
+                bc, bc_metrics = policy.bc_loss(models["actor"], post_feat, goal_feat, batch["action"], final_goal, ac.bc_final)
                 a_loss = a_loss + ac.bc * bc
                 m.update(bc_metrics)
             apply("actor", a_loss, "Eq. 4 actor loss")
@@ -310,13 +289,12 @@ def train(cfgs, run_dir, resume):
         bar.update(1)
         if step % tc.log_every == 0 or step == tc.steps:
             metrics.update(step=step, updates_per_s=tc.log_every / (time.time() - t0), **open_loop_metrics(wm, vae, data.sample(wc.batch, rng, device), wc.seq_len // 2))
+            if wc.seq_len > 40:  # d at 1 / 5 / 15 / 30 steps ahead and for another segment (distance.distance_profile)
+                metrics.update(distance.distance_profile(dist_net, post_feat, goal_feat, batch["is_first"]))
             t0 = time.time()
             log.write(json.dumps(metrics) + "\n")
             log.flush()
-            g = lambda k: metrics.get(k, float("nan"))
-            bar.write(f"{step}: Eq.2 wm {g('wm_loss'):.2f} (recon {g('recon'):.2f} kl {g('kl'):.2f} open-loop {g('open_loop'):.3f}, p cos {g('open_loop_p_cos'):.2f}) | "
-                      f"Eq.3 goal {g('goal_loss'):.2f} (cos {g('goal_cos'):.2f}) | Eq.7 dist {g('dist_loss'):.3f} | "
-                      f"Eq.4 actor {g('actor_loss'):.3f} critic {g('critic_loss'):.3f} reward {g('reward'):.3f} bc {g('bc_loss'):.2f} | {g('updates_per_s'):.1f} upd/s")
+            bar.write(log_line(metrics))
         if step % tc.checkpoint_every == 0 or step == tc.steps:
             saved = save()
     bar.close()
@@ -325,21 +303,16 @@ def train(cfgs, run_dir, resume):
         json.dump(imagination, f, indent=1)
     print(f"held-out D_body: goal decoder's cosine to the true p_t {imagination['posterior_p_cos']:.2f} on posterior states, "
           f"{imagination['open_loop_p_cos']:.2f} on {wc.seq_len - wc.seq_len // 2} open-loop imagined steps (world-model error {imagination['open_loop']:.3f})")
-    rows = evaluate_goal_reaching(models, cfgs, held_out, encoder, device)
-    with open(os.path.join(run_dir, "goal_reaching.json"), "w") as f:
-        json.dump(rows, f, indent=1)
-    mean = lambda key, rs: float(np.mean([r[key] for r in rs])) if rs else float("nan")
-    tasked = [r for r in rows if r["task"] in envs.TASKS]
-    print(f"goal reaching over {len(rows)} held-out goals: video-feature similarity to the goal policy {mean('policy_similarity', rows):.3f} "
-          f"vs random {mean('random_similarity', rows):.3f}; normalised score on the goal's task ({len(tasked)} goals) "
-          f"policy {mean('policy_score', tasked):.1f} vs random {mean('random_score', tasked):.1f}")
-    print(f"wrote {ckpt_path}, {run_dir}/metrics.jsonl, {run_dir}/goal_reaching.json")
+    print("wrote", evaluate.learning_curve(run_dir))
+    report_goal_reaching(run_dir, models, cfgs, device)
+    print(f"wrote {ckpt_path}, {run_dir}/metrics.jsonl")
     return run_dir
 
 
 def main():
     parser = argparse.ArgumentParser(description="Phase 1: pretrain the world model, goal VAE, distance and multi-task policy on D_body.")
     parser.add_argument("--resume", action="store_true", help="continue runs/<name>/checkpoint.pt")
+    parser.add_argument("--evaluate", action="store_true", help="only the goal-reaching benchmark (evaluate.py) of the trained run")
     parser.add_argument("--obs", dest="wm.obs", choices=("state", "pixels"), default=None, help="world-model input (default: the preset's)")
     parser.add_argument("--run-dir", default=None, help="default runs/<env>_<obs>_<preset>_s<seed>")
     add_config_flags(parser)
@@ -348,7 +321,14 @@ def main():
     cfgs = resolve_configs(args, getattr(args, "train.preset") or "cpu")
     tc = cfgs["train"]
     run_dir = args.run_dir or os.path.join("runs", f"{tc.env}_{cfgs['wm'].obs}_{tc.preset}_s{tc.seed}")
-    train(cfgs, run_dir, args.resume)
+    if args.evaluate:
+        device = "cuda" if torch.cuda.is_available() else "cpu"
+        run_cfgs, models, _ = load_run(run_dir, device)
+        torch.set_num_threads(tc.threads)
+        run_cfgs["train"] = dataclasses.replace(run_cfgs["train"], eval_episodes=tc.eval_episodes, eval_steps=tc.eval_steps, data=tc.data)
+        report_goal_reaching(run_dir, models, run_cfgs, device)
+    else:
+        train(cfgs, run_dir, args.resume)
 
 
 if __name__ == "__main__":

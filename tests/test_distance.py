@@ -70,3 +70,29 @@ def test_distance_net_learns_temporal_order():
         d = dist_net(feat[:, :1].expand(-1, T, -1), feat)  # (B, T): from step 0 to every step
     assert d.shape == (B, T)
     assert (d[:, -1] - d[:, 1]).mean() > 0.3  # (9 - 1) / 10 = 0.8 by Eq. 6
+
+
+def test_encoder_goals_score_each_pair_with_the_frame_s_encoder_goal_too():
+    feat = torch.tensor([[[0.0], [0.1], [0.5]], [[0.2], [0.3], [0.9]]])  # (B=2, T=3, F=1)
+    goal_feat = feat + 0.25  # the encoder's goals of the same frames, offset
+    pairs = {"pos": (torch.tensor([0]), torch.tensor([0]), torch.tensor([2])), "neg": (torch.tensor([1]), torch.tensor([0]), torch.tensor([0]), torch.tensor([1]))}
+    same, _ = distance_loss(stub_dist_net, feat, pairs, horizon_T=3, goal_feat=feat)
+    alone, _ = distance_loss(stub_dist_net, feat, pairs, horizon_T=3)
+    assert same.item() == pytest.approx(alone.item())  # identical goals: the mean of two equal terms
+    loss, metrics = distance_loss(stub_dist_net, feat, pairs, horizon_T=3, contrastive_weight=0.1, goal_feat=goal_feat)
+    # by hand: posterior goal d = 0.5 vs 2/3, negative d = 0.1 - 0.2 = -0.1 vs 1; encoder goal d = 0.75 vs 2/3, negative d = 0.15 vs 1
+    post = (0.5 - 2 / 3) ** 2 + 0.1 * (-0.1 - 1) ** 2
+    enc = (0.75 - 2 / 3) ** 2 + 0.1 * (0.15 - 1) ** 2
+    assert loss.item() == pytest.approx((post + enc) / 2, abs=1e-6)
+    assert metrics["dist_pos_enc"] == pytest.approx(0.75) and metrics["dist_neg_enc"] == pytest.approx(0.15)
+
+
+def test_distance_profile_reads_d_at_each_gap():
+    from distance import distance_profile
+
+    B, T = 3, 45
+    feat = torch.arange(T, dtype=torch.float)[None, :, None].expand(B, T, 1)  # feature = time step
+    is_first = torch.zeros(B, T, dtype=torch.bool)
+    profile = distance_profile(stub_dist_net, feat, feat + 1, is_first)
+    assert profile["d_post"][:4] == [1.0, 5.0, 15.0, 30.0] and profile["d_enc"][:4] == [2.0, 6.0, 16.0, 31.0]
+    assert len(profile["d_post"]) == 5

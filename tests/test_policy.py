@@ -59,9 +59,9 @@ def test_actor_loss_passes_no_gradient_to_the_world_model():
     cfg, world_model, dist_net, actor, critic, slow_critic = make_agents()
     batch = W.random_batch("state", 5, 2, 4, 6)
     _, _, post = world_model.loss(batch)  # post carries the world model's graph: the start states must cut it
-    start = P.sample_starts(post, 16)
-    post_feat = world_model.feat(post).flatten(0, 1)
-    goal = P.sample_goals(post_feat, post_feat.flip(0), 16, cfg.goal_mix)
+    start, index = P.sample_starts(post, 16)
+    post_feat = world_model.feat(post)
+    goal = P.sample_goals(post_feat, post_feat.flip(0), index, batch["is_first"], cfg.goal_mix, 0.5)
     a_loss, c_loss, metrics = P.policy_losses(world_model, dist_net, actor, critic, slow_critic, P.ReturnNorm(0.99), start, goal, cfg)
     assert {"actor_loss", "critic_loss", "reward", "return", "value", "entropy"} <= metrics.keys()
     a_loss.backward()
@@ -100,20 +100,58 @@ def test_rollout_shapes_and_alignment():
 
 
 def test_sample_goals_mixes_posterior_states_and_encoder_goals():
-    post_feat, encoded = torch.zeros(10, 3), torch.ones(10, 3)
+    B, T = 5, 2
+    post_feat, encoded = torch.zeros(B, T, 3), torch.ones(B, T, 3)
+    is_first, index = torch.zeros(B, T, dtype=torch.bool), torch.zeros(2000, dtype=torch.long)
     g = torch.Generator().manual_seed(0)
-    assert (P.sample_goals(post_feat, encoded, 200, 0.0, g) == 0).all()
-    assert (P.sample_goals(post_feat, encoded, 200, 1.0, g) == 1).all()
-    share = P.sample_goals(post_feat, encoded, 2000, 0.5, g)[:, 0].mean().item()
+    assert (P.sample_goals(post_feat, encoded, index[:200], is_first, 0.0, 0.5, g) == 0).all()
+    assert (P.sample_goals(post_feat, encoded, index[:200], is_first, 1.0, 0.5, g) == 1).all()
+    share = P.sample_goals(post_feat, encoded, index, is_first, 0.5, 0.5, g)[:, 0].mean().item()
     assert 0.45 < share < 0.55
+
+
+def test_near_goals_are_later_frames_of_the_start_segment():
+    """Each frame's feature is its flat index b * T + t, so a goal tells which frame it came from."""
+    B, T = 3, 6
+    frame = torch.arange(B * T, dtype=torch.float).reshape(B, T, 1)
+    is_first = torch.zeros(B, T, dtype=torch.bool)
+    is_first[1, 3] = True  # row 1: a new episode starts at t = 3
+    g = torch.Generator().manual_seed(0)
+    index = torch.tensor([0 * T + 1, 1 * T + 0, 2 * T + 5] * 400)  # starts (0, 1), (1, 0), (2, 5)
+    goal = P.sample_goals(frame, frame, index, is_first, 1.0, 1.0, g)[:, 0].long()
+    first, second, last = goal[0::3], goal[1::3], goal[2::3]
+    assert set(first.tolist()) == set(range(2, 6))  # every later frame of row 0, none earlier
+    # row 1 from t = 0: frames 7, 8 are reachable; a draw past the episode start at t = 3 (frames 9-11) falls back
+    # to a frame anywhere in the batch, so 9-11 appear only at that rate (3 / 5 of draws x 3 / 18 frames = 0.1)
+    assert ((second == 7) | (second == 8)).float().mean() > 0.35
+    assert ((second >= 9) & (second <= 11)).float().mean() < 0.16
+    assert len(set(last.tolist())) > 5  # the last frame has no later one: any frame of the batch
+    far = P.sample_goals(frame, frame, index, is_first, 1.0, 0.0, g)[:, 0].long()
+    assert len(set(far[0::3].tolist())) == B * T  # near = 0: goals anywhere in the batch
 
 
 def test_sample_starts_are_distinct_detached_posterior_states():
     post = {"deter": torch.arange(12.0, requires_grad=True).reshape(3, 4, 1) * 1, "stoch": torch.zeros(3, 4, 2)}
-    start = P.sample_starts(post, 5, torch.Generator().manual_seed(0))
+    start, index = P.sample_starts(post, 5, torch.Generator().manual_seed(0))
     assert start["deter"].shape == (5, 1) and start["stoch"].shape == (5, 2) and not start["deter"].requires_grad
     assert len(set(start["deter"].flatten().tolist())) == 5
-    assert P.sample_starts(post, 100)["deter"].shape == (12, 1)
+    assert torch.equal(start["deter"][:, 0], index.float())  # deter of flat index i is i
+    assert P.sample_starts(post, 100)[0]["deter"].shape == (12, 1)
+
+
+def test_actor_with_its_goal_input_computed_once_equals_the_concatenated_layer():
+    torch.manual_seed(0)
+    cfg = P.ActorCriticConfig(**P.PRESETS["smoke"])
+    actor = P.Actor(cfg, 6, 4, 3)
+    feat, goal = torch.randn(7, 6), torch.randn(7, 4)
+    mean, std = actor.distribution(feat, goal)
+    x = actor.net(torch.cat([feat, goal], -1))  # the plain MLP on [feat, goal]
+    raw_mean, raw_std = x.chunk(2, -1)
+    assert torch.allclose(mean, cfg.mean_scale * torch.tanh(raw_mean / cfg.mean_scale), atol=1e-6)
+    assert torch.allclose(std, (cfg.max_std - cfg.min_std) * torch.sigmoid(raw_std + 2.0) + cfg.min_std, atol=1e-6)
+    assert torch.allclose(actor.distribution(feat, goal, actor.goal_input(goal))[0], mean)
+    other = actor.distribution(feat, torch.randn(7, 4))[0]
+    assert (other - mean).abs().max() > 1e-3  # the action depends on the goal
 
 
 def test_phase2_reuse_sends_gradient_to_the_goal_only():

@@ -18,8 +18,10 @@ def test_smoke_run_writes_checkpoint_metrics_and_goal_reaching(smoke_run):
     assert ckpt["config"]["wm"]["obs"] == "state" and ckpt["config"]["wm"]["deter"] == 16  # the smoke preset, resolved
     lines = [json.loads(l) for l in open(os.path.join(smoke_run, "metrics.jsonl"))]
     assert [l["step"] for l in lines] == [2, 4, 6] and "actor_loss" in lines[-1] and "open_loop" in lines[-1] and -1 <= lines[-1]["open_loop_p_cos"] <= 1
-    rows = json.load(open(os.path.join(smoke_run, "goal_reaching.json")))
-    assert len(rows) == 2 and all(-1 <= r["policy_similarity"] <= 1 for r in rows)
+    scores = json.load(open(os.path.join(smoke_run, "goal_reaching.json")))
+    assert list(scores) == ["stand", "walk", "run", "jump"]
+    assert all(len(s["policy"]) == len(s["random"]) == 2 for s in scores.values())  # smoke: 2 demos x 1 episode
+    assert os.path.getsize(os.path.join(smoke_run, "learning_curve.png")) > 1000
     imagination = json.load(open(os.path.join(smoke_run, "imagination.json")))
     assert set(imagination) == {"posterior_p_cos", "open_loop_p_cos", "open_loop"}
     assert -1 <= imagination["posterior_p_cos"] <= 1 and -1 <= imagination["open_loop_p_cos"] <= 1
@@ -69,7 +71,7 @@ def test_segments_stay_inside_episodes(smoke_data):
 
 def test_paper_preset_builds_pixel_dreamer_sizes_and_updates(smoke_data, tmp_path):
     """The paper's sizes (pixels, GRU 1024, CNN depth 48) run a couple of updates on CPU with a tiny batch."""
-    small = {"steps": 2, "policy_start": 1, "eval_goals": 1, "eval_steps": 3, "holdout_every": 3, "log_every": 1,
+    small = {"steps": 2, "policy_start": 1, "eval_episodes": 1, "eval_steps": 3, "holdout_every": 3, "log_every": 1,
              "checkpoint_every": 2, "wm.batch": 2, "wm.seq_len": 8, "ac.starts": 4, "ac.horizon": 3, "data": smoke_data}
     cfgs = train.resolve_configs(train_args(**small), "paper")
     assert (cfgs["wm"].obs, cfgs["wm"].deter, cfgs["wm"].cnn_depth) == ("pixels", 1024, 48)
@@ -93,7 +95,10 @@ def test_command_line_runs_and_resumes(smoke_data, tmp_path):
     cwd = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
     first = subprocess.run(base, cwd=cwd, capture_output=True, text=True)
     assert first.returncode == 0, first.stderr[-2000:]
-    assert "goal reaching over 2 held-out goals" in first.stdout
+    assert "average stand/walk/run" in first.stdout
+    evaluated = subprocess.run(base + ["--evaluate", "--eval-episodes", "2"], cwd=cwd, capture_output=True, text=True)
+    assert evaluated.returncode == 0, evaluated.stderr[-2000:]
+    assert all(len(s["policy"]) == 4 for s in json.load(open(os.path.join(run, "goal_reaching.json"))).values())  # 2 demos x 2
     again = subprocess.run(base + ["--resume", "--steps", "8"], cwd=cwd, capture_output=True, text=True)
     assert again.returncode == 0 and "resumed" in again.stdout
     assert torch.load(os.path.join(run, "checkpoint.pt"), weights_only=False)["step"] == 8

@@ -1,0 +1,138 @@
+"""Sec. 5 and Eq. 8: the agent in its real environment, and phase 1's goal-reaching benchmark.
+
+run_episodes acts with the frozen multi-task policy pi(a | s_t, g) in N environments at once (one batched world-model
+and actor call per step), s_t filtered online by the world model's posterior; the environments' true task rewards
+are summed but never shown to the agent.
+
+goal_reaching is how phase 1 is judged on its own (before any imitation): the goals are the agent's OWN body's
+side-view expert demos (D_demo, the SE-SV setting of GIIL-ZS): g = q(s | p_T), the goal encoder of the demo's last
+video feature, exactly what GIIL-ZS feeds the policy. Each of the 10 demos of stand, walk and run is the goal of
+`episodes` episodes of 500 agent steps from the environment's random start; the score is Eq. 8's normalised return
+of the demo's task, mean +- standard error over the episodes, beside uniform random actions with the same seeds. Jump
+is not in D_body (Sec. 5) and is reported on its own line, outside the average.
+
+    python train.py --evaluate --run-dir runs/walker_state_cpu_s0   # writes runs/<name>/goal_reaching.json
+"""
+import json
+import os
+
+import numpy as np
+import torch
+from tqdm import tqdm
+
+import collect
+import envs
+
+BODY_TASKS = ("stand", "walk", "run")  # the tasks of D_body, whose average is the benchmark's number (jump held out)
+
+
+@torch.no_grad()
+def run_episodes(env_list, models, goals, steps, obs_key, seed, render=False, random_actions=False):
+    """One episode in each env of env_list (reset with seeds seed, seed + 1, ...), acting with pi(a | s_t, g_i),
+    deterministic (the tanh of the mean), or uniform random actions. goals (N, F), unused with random_actions.
+    -> returns (N,) float array, frames (N, steps + 1, 64, 64, 3) if render else None."""
+    wm, actor = models["world_model"], models["actor"]
+    device = next(wm.parameters()).device
+    N, A = len(env_list), env_list[0].action_dim
+    rng = np.random.default_rng(seed)
+    torch.manual_seed(seed)  # the posterior samples z_t: the same seed gives the same episodes
+    obs = np.stack([env.reset(seed=seed + i)[0] for i, env in enumerate(env_list)])
+    action = np.zeros((N, A), np.float32)
+    state, total, frames = None, np.zeros(N), []
+    for t in range(steps + 1):
+        if render or obs_key == "pixels":
+            frames.append(np.stack([env.render() for env in env_list]))
+        o = torch.as_tensor(frames[-1] if obs_key == "pixels" else obs, device=device)[:, None]
+        post, _ = wm.observe(o, torch.as_tensor(action, device=device)[:, None], torch.full((N, 1), t == 0, device=device), state)
+        state = {k: v[:, -1] for k, v in post.items()}
+        if t == steps:
+            break
+        if random_actions:
+            action = rng.uniform(-1, 1, (N, A)).astype(np.float32)
+        else:
+            action = actor(wm.feat(state), goals, deterministic=True)[0].cpu().numpy()
+        results = [env.step(a) for env, a in zip(env_list, action)]
+        obs = np.stack([r[0] for r in results])
+        total += [r[1] for r in results]
+    return total, (np.stack(frames, 1) if render else None)
+
+
+def episode_score(task, episode_return, steps):
+    """Eq. 8 on a return of `steps` agent steps, scaled to the full episode when shorter."""
+    return float(envs.normalized_score(task, episode_return * envs.EPISODE_STEPS / steps))
+
+
+def stderr(values):
+    return float(np.std(values, ddof=1) / np.sqrt(len(values))) if len(values) > 1 else 0.0
+
+
+def goal_reaching(models, cfgs, episodes=3, steps=envs.EPISODE_STEPS, tasks=envs.TASKS, device="cpu"):
+    """The benchmark (module docstring): {task: {'policy': [scores], 'random': [scores]}} over demos x episodes."""
+    body, data = cfgs["train"].env, cfgs["train"].data
+    out = {}
+    for task in tasks:
+        folder = os.path.join(data, "demos", f"{body}_{task}_side")
+        if not os.path.isdir(folder):
+            raise FileNotFoundError(f"no own-body demos at {folder}: collect them with `python collect.py --demos --data {data}`")
+        demos = collect.load_folder(folder, ("p",))
+        with torch.no_grad():  # g = q(s | p_T) of every demo, each the goal of `episodes` episodes
+            goals = models["goal_vae"].goal(torch.as_tensor(np.stack([d["p"][-1] for d in demos]), device=device))
+        goals = goals.repeat_interleave(episodes, 0)  # (demos x episodes, F)
+        env_list = [envs.make_env(body, task) for _ in range(len(goals))]
+        out[task] = {}
+        for name in tqdm(("policy", "random"), desc=f"goal reaching {body} {task}", leave=False):
+            returns, _ = run_episodes(env_list, models, goals, steps, cfgs["wm"].obs, 30_000, random_actions=name == "random")
+            out[task][name] = [episode_score(task, r, steps) for r in returns]
+    return out
+
+
+def summary(scores):
+    """Lines of the benchmark's table: each task, then the stand/walk/run average (jump apart)."""
+    lines = [f"{'task':<22}{'policy':>16}{'random':>16}"]
+    cell = lambda v: f"{np.mean(v):6.1f} +- {stderr(v):4.1f}"
+    for task, s in scores.items():
+        lines.append(f"{task + (' (not in D_body)' if task not in BODY_TASKS else ''):<22}{cell(s['policy']):>16}{cell(s['random']):>16}")
+    inside = [t for t in BODY_TASKS if t in scores]
+    if inside:
+        # the average of the task means; its s.e. from the per-task standard errors (independent episodes)
+        mean = lambda k: np.mean([np.mean(scores[t][k]) for t in inside])
+        se = lambda k: np.sqrt(sum(stderr(scores[t][k]) ** 2 for t in inside)) / len(inside)
+        average = {k: f"{mean(k):6.1f} +- {se(k):4.1f}" for k in ("policy", "random")}
+        lines.append(f"{'average ' + '/'.join(inside):<22}{average['policy']:>16}{average['random']:>16}")
+    return lines
+
+
+def write_goal_reaching(run_dir, scores):
+    path = os.path.join(run_dir, "goal_reaching.json")
+    with open(path + ".tmp", "w") as f:
+        json.dump(scores, f)
+    os.replace(path + ".tmp", path)
+    return path
+
+
+def learning_curve(run_dir):
+    """runs/<name>/learning_curve.png from metrics.jsonl: Eq. 4's imagined goal reward, Eq. 7's distances of encoder
+    goals 1 and 15 steps ahead, and the world model's and goal VAE's losses, against updates."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    rows = [json.loads(line) for line in open(os.path.join(run_dir, "metrics.jsonl"))]
+    fig, axes = plt.subplots(1, 3, figsize=(13, 3.2))
+    series = [("Eq. 4 imagined goal reward -d(s, g)", [("reward", "reward")]),
+              ("Eq. 7: d(s_t, q(s | p_t+k))", [("d_enc", "k = 1", 0), ("d_enc", "k = 15", 2), ("d_enc", "other episode", 4)]),
+              ("losses", [("wm_loss", "Eq. 2 world model"), ("goal_loss", "Eq. 3 goal VAE"), ("bc_loss", "hindsight BC")])]
+    for ax, (title, keys) in zip(axes, series):
+        for key, label, *index in keys:
+            points = [(r["step"], r[key][index[0]] if index else r[key]) for r in rows if key in r]
+            if points:
+                ax.plot(*zip(*points), label=label)
+        ax.set_title(title, fontsize=10)
+        ax.set_xlabel("update")
+        ax.legend(fontsize=8)
+    fig.tight_layout()
+    path = os.path.join(run_dir, "learning_curve.png")
+    fig.savefig(path, dpi=80)
+    plt.close(fig)
+    return path
