@@ -1,5 +1,6 @@
 """Speed figures for the README: python bench.py [--only render ...]. Each section measures in one run."""
 import argparse
+import os
 import time
 
 import numpy as np
@@ -51,25 +52,120 @@ def bench_collect(episodes=2):
         print(f"collect        {name} episode ({job['steps']} steps) {per:5.1f} s | {3600 / per:5.0f} episodes/h per core")
 
 
-def bench_phase1():
-    """Updates/s of each phase-1 component at the cpu preset, one thread (train.py runs them in sequence)."""
+def component_updates(preset="cpu", obs_dim=24, action_dim=6, p_dim=64):
+    """One update of each phase-1 component at a preset's sizes, on a random batch of collect.py's shapes, as
+    {name: zero-argument function}: forward, backward, gradient clipping and an Adam step, as train.py does them."""
     import torch
 
     import distance
     import goal_vae
     import policy
-    import video_encoder
-    import world_model
+    import world_model as W
+
+    cfg = {name: cls(**presets[preset]) for name, (cls, presets) in {
+        "wm": (W.WorldModelConfig, W.PRESETS), "goal": (goal_vae.GoalVAEConfig, goal_vae.PRESETS),
+        "dist": (distance.DistanceConfig, distance.PRESETS), "ac": (policy.ActorCriticConfig, policy.PRESETS)}.items()}
+    obs_shape = obs_dim if cfg["wm"].obs == "state" else (64, 64, 3)
+    wm = W.WorldModel(cfg["wm"], obs_shape, action_dim)
+    vae = goal_vae.GoalVAE(cfg["goal"], p_dim, cfg["wm"].deter, cfg["wm"].stoch)
+    dist_net = distance.DistanceNet(cfg["dist"], wm.feat_dim)
+    actor = policy.Actor(cfg["ac"], wm.feat_dim, wm.feat_dim, action_dim)
+    critic, slow_critic = policy.make_critics(cfg["ac"], wm.feat_dim, wm.feat_dim)
+    return_norm = policy.ReturnNorm(cfg["ac"].return_norm_decay)
+    batch = W.random_batch(cfg["wm"].obs, obs_shape, action_dim, cfg["wm"].batch, cfg["wm"].seq_len, p_dim)
+    with torch.no_grad():
+        post, _ = wm.observe(batch[cfg["wm"].obs], batch["action"], batch["is_first"])
+        post_feat, goal_feat = wm.feat(post), vae.goal(batch["p"])
+    modules = {"wm": [wm], "goal": [vae], "dist": [dist_net], "ac": [actor, critic]}
+    opts = {k: [torch.optim.Adam(m.parameters(), lr=3e-4) for m in ms] for k, ms in modules.items()}
+
+    def step(name, loss):
+        for opt in opts[name]:
+            opt.zero_grad(set_to_none=True)
+        loss.backward()
+        for m, opt in zip(modules[name], opts[name]):
+            torch.nn.utils.clip_grad_norm_(m.parameters(), 100.0)
+            opt.step()
+
+    def actor_critic():
+        start, index = policy.sample_starts(post, cfg["ac"].starts)
+        goal = policy.sample_goals(post_feat, goal_feat, index, batch["is_first"], cfg["ac"].goal_mix, cfg["ac"].goal_near)
+        a_loss, c_loss, _ = policy.policy_losses(wm, dist_net, actor, critic, slow_critic, return_norm, start, goal, cfg["ac"])
+        step("ac", a_loss + c_loss)  # disjoint: the actor loss reaches only the actor, the critic loss only the critic
+        policy.ema_update(slow_critic, critic, cfg["ac"].slow_critic_rate)
+
+    pairs = lambda: distance.sample_pairs(batch["episode"], batch["is_first"], cfg["dist"].pairs)
+    return {
+        "Eq. 2 world model": lambda: step("wm", wm.loss(batch)[0]),
+        "Eq. 3 goal VAE": lambda: step("goal", vae.loss(batch["p"], post)[0]),
+        "Eq. 7 distance": lambda: step("dist", distance.distance_loss(dist_net, post_feat, pairs(), cfg["wm"].seq_len, cfg["dist"].contrastive_weight,
+                                                                       goal_feat if cfg["dist"].encoder_goals else None)[0]),
+        f"Eq. 4 actor-critic ({cfg['ac'].starts} starts x {cfg['ac'].horizon} steps)": actor_critic,
+    }
+
+
+def bench_components():
+    """Each phase-1 component's update at the cpu preset, one thread."""
+    import torch
 
     torch.set_num_threads(1)
-    total = 0.0
-    for module in (world_model, goal_vae, distance, policy):
-        kwargs = {"feat_dim": video_encoder.DEFAULT_DIM} if module is goal_vae else {}
-        update, what = module.bench_update("cpu", **kwargs)
+    for name, update in component_updates().items():
         seconds = timed(update, repeat=10, warmup=2)
-        total += seconds
-        print(f"phase 1        {what}: {1 / seconds:6.1f} updates/s ({1000 * seconds:.0f} ms)")
-    print(f"phase 1        one full train.py update (all four): {1000 * total:.0f} ms, {1 / total:.1f} updates/s")
+        print(f"phase 1        {name}: {1000 * seconds:.0f} ms")
+
+
+def train_updates_per_s(tree, data, threads, logs=4, every=10):
+    """Updates/s of the real train.py loop of the source tree `tree` (walker, cpu preset, the actor-critic from the
+    first update), read from its metrics.jsonl: the mean over `logs` log intervals after the first (warm-up)."""
+    import json
+    import subprocess
+    import sys
+    import tempfile
+
+    run = tempfile.mkdtemp()
+    cmd = [sys.executable, "train.py", "--env", "walker", "--steps", "100000", "--policy-start", "0", "--log-every", str(every),
+           "--checkpoint-every", "100000", "--threads", str(threads), "--run-dir", run, "--data", data]
+    env = {**os.environ, "OMP_NUM_THREADS": str(threads)}
+    proc = subprocess.Popen(cmd, cwd=tree, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, env=env)
+    path = os.path.join(run, "metrics.jsonl")
+    try:
+        while proc.poll() is None:
+            rows = [json.loads(line) for line in open(path)] if os.path.exists(path) else []
+            if len(rows) > logs:
+                return logs * every / sum(every / r["updates_per_s"] for r in rows[1 : logs + 1])
+            time.sleep(1)
+        raise RuntimeError(f"train.py in {tree} stopped: {proc.stderr.read().decode()[-500:]}")
+    finally:
+        proc.kill()
+        proc.wait()
+
+
+def bench_phase1(against=None, rounds=2, data="data"):
+    """Updates/s of the real train.py loop (cpu preset, walker's D_body) at 1 and 2 threads, and with --against REV the
+    same for that commit's code, alternating old and new `rounds` times in this one run so that both see the same load."""
+    import shutil
+    import subprocess
+    import tempfile
+
+    if not os.path.isdir(os.path.join(data, "walker")):
+        raise SystemExit(f"bench.py --only phase1 trains on {data}/walker: collect it with `python collect.py --env walker`")
+    data = os.path.abspath(data)
+    trees = {"this tree": os.path.dirname(os.path.abspath(__file__))}
+    if against:
+        old = tempfile.mkdtemp()
+        archive = subprocess.run(["git", "archive", against], capture_output=True, check=True).stdout
+        subprocess.run(["tar", "-x", "-C", old], input=archive, check=True)
+        trees = {against: old, **trees}
+    for threads in (1, 2):
+        speeds = {name: [] for name in trees}
+        for _ in range(rounds):
+            for name, tree in trees.items():
+                speeds[name].append(train_updates_per_s(tree, data, threads))
+        line = " | ".join(f"{name} {np.mean(v):.2f} updates/s" for name, v in speeds.items())
+        ratio = f" | ratio {np.mean(speeds['this tree']) / np.mean(speeds[against]):.2f}x" if against else ""
+        print(f"phase 1        train.py loop, {threads} thread{'s' if threads > 1 else ''}: {line}{ratio}")
+    if against:
+        shutil.rmtree(trees[against])
 
 
 def bench_ot():
@@ -83,10 +179,12 @@ def bench_ot():
         print(f"OT reward      B={B} trajectories x T=15 against K=10 demos of M={M} frames (D=512): {1000 * r['whole_demo_s']:.0f} ms (windowed: {1000 * r['window_s']:.0f} ms)")
 
 
-SECTIONS = {"render": bench_render, "features": bench_features, "collect": bench_collect, "phase1": bench_phase1, "ot": bench_ot}
+SECTIONS = {"render": bench_render, "features": bench_features, "collect": bench_collect, "components": bench_components, "phase1": bench_phase1, "ot": bench_ot}
 
 if __name__ == "__main__":
     parser = argparse.ArgumentParser(description=__doc__)
     parser.add_argument("--only", nargs="+", choices=SECTIONS, default=list(SECTIONS))
-    for name in parser.parse_args().only:
-        SECTIONS[name]()
+    parser.add_argument("--against", metavar="REV", help="phase1: also time this git commit's train.py, in the same run (e.g. 4ca0c2f)")
+    args = parser.parse_args()
+    for name in args.only:
+        SECTIONS[name](args.against) if name == "phase1" else SECTIONS[name]()

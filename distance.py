@@ -33,7 +33,7 @@ from dataclasses import dataclass
 import torch
 import torch.nn as nn
 
-from world_model import PRESETS as WM_PRESETS, WorldModelConfig, mlp
+from world_model import mlp
 
 
 @dataclass
@@ -118,25 +118,3 @@ def distance_profile(dist_net, feat, goal_feat, is_first, t0=10, ahead=(1, 5, 15
         d.append(dist_net(feat[:, t0], goal.roll(1, 0)[:, t0 + ahead[0]]).mean().item())  # another segment's frame
         out[name] = d
     return out
-
-
-def bench_update(preset="cpu"):
-    """One distance-network update (pair sampling, forward, backward, clip, Adam step) at a preset's sizes on random
-    features, as a zero-argument function for bench.py to time, and what it measures."""
-    wm = WorldModelConfig(**WM_PRESETS[preset])
-    cfg = DistanceConfig(**PRESETS[preset])
-    feat_dim = wm.deter + wm.stoch
-    dist_net = DistanceNet(cfg, feat_dim)
-    B, T = wm.batch, wm.seq_len
-    feat, goal_feat, episode = torch.randn(B, T, feat_dim), torch.randn(B, T, feat_dim), torch.arange(B)
-    is_first = torch.zeros(B, T, dtype=torch.bool)
-    opt = torch.optim.Adam(dist_net.parameters(), lr=cfg.lr)
-
-    def update():
-        loss = distance_loss(dist_net, feat, sample_pairs(episode, is_first, cfg.pairs), T, cfg.contrastive_weight, goal_feat if cfg.encoder_goals else None)[0]
-        opt.zero_grad(set_to_none=True)
-        loss.backward()
-        nn.utils.clip_grad_norm_(dist_net.parameters(), cfg.grad_clip)
-        opt.step()
-
-    return update, f"distance update, {preset} preset, batch {B}x{T}, {cfg.pairs} pairs of each kind"

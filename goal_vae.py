@@ -19,7 +19,7 @@ import torch
 import torch.nn as nn
 import torch.nn.functional as F
 
-from world_model import PRESETS as WM_PRESETS, WorldModelConfig, gaussian_kl, mlp
+from world_model import gaussian_kl, mlp
 
 
 @dataclass
@@ -93,24 +93,3 @@ class GoalVAE(nn.Module):
         metrics = {"goal_loss": loss.item(), "goal_kl": kl.mean().item(), "goal_deter_nll": deter_nll.mean().item(),
                    "goal_recon": recon.mean().item(), "goal_cos": cos.mean().item(), "goal_post_cos": post_cos.mean().item()}
         return loss, metrics
-
-
-def bench_update(preset="cpu", feat_dim=64):
-    """One goal-VAE update (forward, backward, clip, Adam step) at a preset's sizes, on random features and a random
-    posterior of the world model's preset sizes, as a zero-argument function for bench.py to time, and what it measures."""
-    wm = WorldModelConfig(**WM_PRESETS[preset])
-    cfg = GoalVAEConfig(**PRESETS[preset])
-    vae = GoalVAE(cfg, feat_dim, wm.deter, wm.stoch)
-    B, T = wm.batch, wm.seq_len
-    p = F.normalize(torch.randn(B, T, feat_dim), dim=-1)
-    post = {"deter": torch.randn(B, T, wm.deter), "stoch": torch.randn(B, T, wm.stoch), "mean": torch.randn(B, T, wm.stoch), "std": torch.rand(B, T, wm.stoch) + 0.1}
-    opt = torch.optim.Adam(vae.parameters(), lr=cfg.lr)
-
-    def update():
-        loss = vae.loss(p, post)[0]
-        opt.zero_grad(set_to_none=True)
-        loss.backward()
-        nn.utils.clip_grad_norm_(vae.parameters(), cfg.grad_clip)
-        opt.step()
-
-    return update, f"goal VAE update, {preset} preset, batch {B}x{T}, D {feat_dim}"

@@ -249,7 +249,7 @@ def imitate(run_dir, demo, view, finetune, ic, zero_shot=True):
     results_path = os.path.join(run_dir, "results.jsonl")
     rows = []
 
-    def evaluate(method, seed, goal, video_demo):
+    def evaluate_goal(method, seed, goal, video_demo):
         scores = []
         for e in range(ic.eval_episodes):
             render = bool(ic.video) and e == 0
@@ -268,7 +268,7 @@ def imitate(run_dir, demo, view, finetune, ic, zero_shot=True):
         goals = [models["goal_vae"].goal(torch.as_tensor(d["p"][-1], device=device)) for d in demos]  # GIIL-ZS: g = q(s | p_T)
     t0 = time.time()
     for k, goal in enumerate(tqdm(goals if zero_shot else [], desc=f"GIIL-ZS {demo} {view}")):
-        evaluate("GIIL-ZS", k, goal, demos[k]["pixels"])
+        evaluate_goal("GIIL-ZS", k, goal, demos[k]["pixels"])
     if finetune:
         psi_star = {k: {n: t.clone() for n, t in m.state_dict().items()} for k, m in models.items()}  # clones: optimisers step in place
         for seed in range(ic.seeds):
@@ -277,7 +277,7 @@ def imitate(run_dir, demo, view, finetune, ic, zero_shot=True):
                 m.load_state_dict(psi_star[k])
             goal = finetune_goal(models, cfgs, ic, ot_cfg, torch.as_tensor(demos[0]["p"][-1], device=device), [d["p"] for d in demos], seed, device,
                                  ckpt.get("optims"))
-            evaluate("GIIL-FT", seed, goal, demos[0]["pixels"])
+            evaluate_goal("GIIL-FT", seed, goal, demos[0]["pixels"])
     for method in ("GIIL-ZS", "GIIL-FT"):
         scores = [r["score"] for r in rows if r["method"] == method]
         if not scores:

@@ -24,8 +24,7 @@ import torch
 import torch.nn as nn
 import torch.nn.functional as F
 
-from distance import PRESETS as DIST_PRESETS, DistanceConfig, DistanceNet
-from world_model import PRESETS as WM_PRESETS, WorldModel, WorldModelConfig, mlp, random_batch
+from world_model import mlp
 
 
 @dataclass
@@ -292,34 +291,3 @@ def make_critics(cfg, feat_dim, goal_dim):
     """The critic and its slow copy (a constant: requires_grad False, moved only by ema_update)."""
     critic = Critic(cfg, feat_dim, goal_dim)
     return critic, copy.deepcopy(critic).requires_grad_(False)
-
-
-def bench_update(preset="cpu", obs_dim=24, action_dim=6):
-    """One actor-critic update (rollout from cfg.starts posterior states, both losses, backward, clip, Adam steps, EMA)
-    at a preset's sizes, as a zero-argument function for bench.py to time, and what it measures."""
-    wm_cfg, cfg = WorldModelConfig(**WM_PRESETS[preset]), ActorCriticConfig(**PRESETS[preset])
-    obs_shape = obs_dim if wm_cfg.obs == "state" else (64, 64, 3)
-    world_model = WorldModel(wm_cfg, obs_shape, action_dim)
-    dist_net = DistanceNet(DistanceConfig(**DIST_PRESETS[preset]), world_model.feat_dim)
-    actor = Actor(cfg, world_model.feat_dim, world_model.feat_dim, action_dim)
-    critic, slow_critic = make_critics(cfg, world_model.feat_dim, world_model.feat_dim)
-    return_norm = ReturnNorm(cfg.return_norm_decay)
-    batch = random_batch(wm_cfg.obs, obs_shape, action_dim, wm_cfg.batch, wm_cfg.seq_len)
-    with torch.no_grad():
-        post, _ = world_model.observe(batch[wm_cfg.obs], batch["action"], batch["is_first"])
-    post_feat = world_model.feat(post)  # (B, T, F)
-    opts = [torch.optim.Adam(actor.parameters(), lr=cfg.actor_lr), torch.optim.Adam(critic.parameters(), lr=cfg.critic_lr)]
-
-    def update():
-        start, index = sample_starts(post, cfg.starts)
-        goal = sample_goals(post_feat, post_feat, index, batch["is_first"], cfg.goal_mix, cfg.goal_near)
-        a_loss, c_loss, _ = policy_losses(world_model, dist_net, actor, critic, slow_critic, return_norm, start, goal, cfg)
-        for opt in opts:
-            opt.zero_grad(set_to_none=True)
-        (a_loss + c_loss).backward()  # disjoint: the actor loss reaches only the actor, the critic loss only the critic
-        for opt in opts:
-            nn.utils.clip_grad_norm_(opt.param_groups[0]["params"], cfg.grad_clip)
-            opt.step()
-        ema_update(slow_critic, critic, cfg.slow_critic_rate)
-
-    return update, f"actor-critic update, {preset} preset, {min(cfg.starts, post_feat.shape[0] * post_feat.shape[1])} starts x {cfg.horizon} imagined steps"

@@ -300,22 +300,3 @@ def random_batch(obs, obs_shape, action_dim, batch, seq_len, p_dim=64, seed=0):
     action[:, 0] = 0
     p = F.normalize(torch.randn(B, T, p_dim, generator=g), dim=-1)
     return {**data, "action": action, "reward": torch.zeros(B, T), "is_first": is_first, "p": p, "episode": torch.arange(B)}
-
-
-def bench_update(preset="cpu", obs_dim=24, action_dim=6):
-    """One world-model update (forward, backward, clip, Adam step) at a preset's sizes on a random batch, as a
-    zero-argument function for bench.py to time, and what it measures."""
-    cfg = WorldModelConfig(**PRESETS[preset])
-    obs_shape = obs_dim if cfg.obs == "state" else (64, 64, 3)
-    model = WorldModel(cfg, obs_shape, action_dim)
-    batch = random_batch(cfg.obs, obs_shape, action_dim, cfg.batch, cfg.seq_len)
-    opt = torch.optim.Adam(model.parameters(), lr=cfg.lr)
-
-    def update():
-        loss = model.loss(batch)[0]
-        opt.zero_grad(set_to_none=True)
-        loss.backward()
-        nn.utils.clip_grad_norm_(model.parameters(), cfg.grad_clip)
-        opt.step()
-
-    return update, f"world model update, {preset} preset, {cfg.obs} obs, batch {cfg.batch}x{cfg.seq_len}"

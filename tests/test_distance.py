@@ -96,3 +96,35 @@ def test_distance_profile_reads_d_at_each_gap():
     profile = distance_profile(stub_dist_net, feat, feat + 1, is_first)
     assert profile["d_post"][:4] == [1.0, 5.0, 15.0, 30.0] and profile["d_enc"][:4] == [2.0, 6.0, 16.0, 31.0]
     assert len(profile["d_post"]) == 5
+
+
+def test_encoder_goals_a_few_steps_ahead_score_better_than_another_trajectory_s():
+    """Synthetic trajectories: the state is (position, a per-trajectory tag); the encoder goal of a frame sees only
+    the position (a video window has no history). Trained with encoder goals, -d ranks a goal k steps ahead of the
+    same trajectory above the goal of another trajectory's frame, and nearer goals above farther ones."""
+    torch.manual_seed(0)
+    cfg = DistanceConfig(units=64, layers=2)
+    B, T = 16, 12
+    dist_net = DistanceNet(cfg, 2)
+    opt = torch.optim.Adam(dist_net.parameters(), lr=3e-3)
+    is_first = torch.zeros(B, T, dtype=torch.bool)
+    is_first[:, 0] = True
+
+    def batch():
+        position = torch.rand(B, 1) * 4 + torch.linspace(0, 1, T)  # (B, T): each trajectory moves 1 in T steps
+        tag = torch.randn(B, 1).expand(B, T)
+        feat = torch.stack([position, tag], -1)
+        goal = torch.stack([position, torch.zeros(B, T)], -1)  # the encoder's goal: the position only
+        return feat, goal
+
+    for _ in range(400):
+        feat, goal = batch()
+        loss, _ = distance_loss(dist_net, feat, sample_pairs(torch.arange(B), is_first, 256), T, 0.1, goal)
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+    feat, goal = batch()
+    with torch.no_grad():
+        near, far = dist_net(feat[:, 0], goal[:, 2]), dist_net(feat[:, 0], goal[:, 10])
+        other = dist_net(feat[:, 0], goal.roll(1, 0)[:, 2])
+    assert near.mean() < far.mean() - 0.3 and near.mean() < other.mean() - 0.2, (near.mean(), far.mean(), other.mean())
