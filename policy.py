@@ -57,7 +57,7 @@ PRESETS = {
     # bc: on a CPU budget (~2k actor updates) Eq. 4 alone did not learn to reach goals (README, Deviations)
     # bc_final: evaluation and GIIL-ZS give the goal of an episode's last frame (README, Phase 1)
     "cpu": dict(units=256, actor_layers=2, critic_layers=2, starts=256, actor_lr=3e-4, bc=1.0, bc_final=0.5),
-    "paper": dict(units=1024, horizon=16, starts=48 * 48),  # GenRL: horizon 16, all states of a 48x48 batch (FACTS.md)
+    "paper": dict(units=1024, horizon=16, starts=48 * 48),  # GenRL: horizon 16, all states of a 48x48 batch (Mazzaglia et al. 2024)
 }
 
 
@@ -162,7 +162,7 @@ def sample_starts(post, n, generator=None):
 
 
 def sample_goals(post_feat, encoded_goal, n, mix, generator=None):
-    """Goals for pretraining, the choice DESIGN.md leaves open (ours): each of the n goals is a random D_body frame,
+    """Goals for pretraining, a choice the paper leaves open (ours): each of the n goals is a random D_body frame,
     taken with probability `mix` as the goal encoder's g = q(s | p_t) means and otherwise as the world model's
     posterior feat. Posterior states are what the distance network is trained on, so -d(s, g) is meaningful
     there; goal-encoder outputs are what phase 2 feeds the frozen policy (GIIL-ZS: g = encode(p_T)), so the policy
