@@ -6,7 +6,7 @@ steps and the agent's reward is the sum over the repeat (as in Dreamer and GenRL
 
 * Walker is dm_control's walker XML unchanged, plus our diagonal camera (a camera does not change
   the dynamics, so stand/walk/run rewards equal `dm_control.suite.walker` step for step).
-* Stickman follows the public GenRL model (../shared/FACTS.md): walker with a shorter torso, arms
+* Stickman follows the public GenRL model (Mazzaglia et al. 2024): walker with a shorter torso, arms
   (shoulder, elbow) and a head; 10 motors. Written here from those facts.
 
 One reward definition per task, shared by both bodies (the paper's R^S = R^A). The only per-body
@@ -91,7 +91,7 @@ _STICKMAN_ARM = """
 
 
 def _stickman_xml(walker_xml):
-    """The walker XML with its torso subtree replaced by the stickman's (FACTS.md: GenRL stickman)."""
+    """The walker XML with its torso subtree replaced by the stickman's (GenRL's stickman, Mazzaglia et al. 2024)."""
     head, rest = walker_xml.split('<body name="torso"', 1)
     tail = rest.split("</worldbody>", 1)[1]
     limbs = "".join(_STICKMAN_LEG.format(s=s, y=y) for s, y in (("right", -0.05), ("left", 0.05)))

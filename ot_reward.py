@@ -27,7 +27,7 @@ the same sharpness on every demo (a relative eps, eps x mean cost, would change 
 demo's frames are). Costs near 2 make the kernel exp(-C/eps) as small as exp(-200) at eps 0.01.
 
 Sinkhorn is solved here, batched over trajectories and demos, in torch: the scaling-domain iteration
-of POT's ot.sinkhorn, in float64 (FACTS.md: exp(-C/eps) is 0 in float32 for C > 1.03 at eps 0.01,
+of POT's ot.sinkhorn, in float64 (IEEE 754: exp(-C/eps) is 0 in float32 for C > 1.03 at eps 0.01,
 which makes the worst frames earn the best reward, 0). POT is the reference the tests check against:
 ot.sinkhorn(method='sinkhorn_log') iteration for iteration, and ot.emd in the small-eps limit. POT
 in the main path was slower at bench() size (B=256, K=10, M=500, one thread, measured): per-pair
@@ -120,7 +120,7 @@ def ot_reward(agent_p, demo_p, cfg, demo_offsets=None):
     imagined lambda-returns of Eq. 5 reach g through the OT cost as Dreamer's returns do through a reward model.
     """
     _check_inputs(agent_p, demo_p, demo_offsets)
-    p = agent_p.to(torch.float64)  # float64 throughout: exp(-C/eps) underflows in float32 (FACTS.md)
+    p = agent_p.to(torch.float64)  # float64 throughout: exp(-C/eps) underflows in float32 (docs/sources.md)
     demo = demo_p.to(p.device, torch.float64).reshape(-1, *demo_p.shape[-2:])  # (K, M, D)
     (B, T, D), (K, M, _) = p.shape, demo.shape
     if demo_offsets is None:

@@ -58,7 +58,7 @@ PRESETS = {
     # bc_final: evaluation and GIIL-ZS give the goal of an episode's last frame (README, Phase 1)
     # goal_near: goals the policy can reach inside the horizon, so -d(s, g) varies with what it does (README, Phase 1)
     "cpu": dict(units=256, actor_layers=2, critic_layers=2, starts=256, actor_lr=3e-4, critic_lr=3e-4, bc=1.0, bc_final=0.5, goal_near=0.5),
-    "paper": dict(units=1024, horizon=16, starts=48 * 48),  # GenRL: horizon 16, all states of a 48x48 batch (FACTS.md)
+    "paper": dict(units=1024, horizon=16, starts=48 * 48),  # GenRL: horizon 16, all states of a 48x48 batch (Mazzaglia et al. 2024)
 }
 
 

@@ -2,7 +2,7 @@
 
 Every network is an *ensemble*: a stack of per-task weights applied with batched matrix products
 (torch.baddbmm), so n tasks cost little more than one in a small-MLP regime dominated by per-call
-overhead ("fused critics", FACTS.md). Each task has its own replay buffer, networks, temperature and
+overhead ("fused critics"). Each task has its own replay buffer, networks, temperature and
 optimiser state; nothing is shared but the matrix multiply. select_tasks and copy_member edit a
 training state member by member (stopping experts that are done, restarting one from another).
 """

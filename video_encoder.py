@@ -1,6 +1,6 @@
 """Sec. 4 "The Generalizable Goal Space": p_t = f(o_{t-k+1:t}), unit feature vectors of frame windows.
 
-The paper's f is InternVideo2 (8-frame windows, stride 1, 512-d, L2-normalised; ../shared/FACTS.md). Its
+The paper's f is InternVideo2 (8-frame windows, stride 1, 512-d, L2-normalised; GenRL, Mazzaglia et al. 2024). Its
 weights are gated on a model hub, so the default here is a training-free encoder built for our scene,
 and a real pretrained video model plugs in from a local TorchScript file (`--encoder path.pt`).
 
@@ -60,10 +60,10 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-WINDOW = 8  # k: InternVideo2 in GenRL, 8-frame windows at stride 1 (FACTS.md)
+WINDOW = 8  # k: InternVideo2 in GenRL, 8-frame windows at stride 1 (Mazzaglia et al. 2024)
 SIZE = 64  # renders are 64x64 (envs.py)
 DEFAULT_NAME = "default-v1"  # recorded in every dataset; bump it when anything below changes the features
-DEFAULT_DIM = 512  # as InternVideo2 (FACTS.md); random Fourier features estimate the kernel within ~1/sqrt(DIM)
+DEFAULT_DIM = 512  # as InternVideo2 in GenRL (Mazzaglia et al. 2024); random Fourier features estimate the kernel within ~1/sqrt(DIM)
 BODIES, TASKS, VIEWS = ("walker", "stickman"), ("stand", "walk", "run", "jump"), ("side", "diagonal")
 IMAGENET_MEAN, IMAGENET_STD = (0.485, 0.456, 0.406), (0.229, 0.224, 0.225)  # torchvision's ImageNet statistics
 
@@ -207,7 +207,7 @@ class TorchScriptEncoder:
             raise ValueError(f"{path} does not load as TorchScript ({type(error).__name__}); expected a file written by torch.jit.save") from None
         self.path, self.batch = path, batch
         self.window = int(getattr(self.module, "window", WINDOW))
-        self.size = int(getattr(self.module, "input_size", 224))  # InternVideo2: 224 px (FACTS.md)
+        self.size = int(getattr(self.module, "input_size", 224))  # InternVideo2: 224 px (Wang et al. 2024)
         with open(path, "rb") as f:
             digest = hashlib.file_digest(f, "sha256").hexdigest()
         self.name = f"torchscript:{os.path.basename(path)}:{digest[:12]}"

@@ -52,7 +52,7 @@ class WorldModelConfig:
 PRESETS = {
     "smoke": dict(obs="state", deter=16, stoch=4, hidden=16, units=16, cnn_depth=4, batch=4, seq_len=8),
     "cpu": dict(obs="state", deter=200, stoch=30, hidden=256, units=256, batch=16, seq_len=50),
-    # GenRL's sizes (FACTS.md); deviation: z is 32 Gaussian units, not GenRL's 32 x 32 discrete latent
+    # GenRL's sizes (Mazzaglia et al. 2024); deviation: z is 32 Gaussian units, not GenRL's 32 x 32 discrete latent
     "paper": dict(obs="pixels", deter=1024, stoch=32, hidden=1024, units=1024, cnn_depth=48, batch=48, seq_len=48),
 }
 

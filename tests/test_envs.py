@@ -32,7 +32,7 @@ def test_stickman_structure():
     assert np.allclose(model.jnt_axis[3:], [0, -1, 0])  # every limb hinge is about -y: planar
     assert model.jnt_type[0] == model.jnt_type[1] == 2  # root slides z, x (mjJNT_SLIDE)
     total_mass = model.body_mass.sum()
-    assert 34 < total_mass < 36  # FACTS.md: ~34.9 kg
+    assert 34 < total_mass < 36  # GenRL's stickman (Mazzaglia et al. 2024) at MuJoCo's default density: ~34.9 kg
 
 
 def test_stickman_stands_and_falls():
