@@ -62,12 +62,12 @@ PRESETS = {
 }
 
 
-def with_goal(feat, goal):
-    """[feat, goal] with goal (N, G) or (1, G) broadcast over any time axes of feat (N, ..., F); feat alone if goal is None."""
-    if goal is None:
-        return feat
-    goal = goal.reshape(goal.shape[0], *[1] * (feat.dim() - 2), goal.shape[-1])
-    return torch.cat([feat, goal.expand(*feat.shape[:-1], -1)], -1)
+def first_layer_with_goal(linear, feat, goal):
+    """linear([feat, goal]) with goal (N, G) broadcast over the time axes of feat (N, ..., F), computed as
+    W_f feat + (W_g goal + b): the goal's share once per goal, not once per step (W [f; g] + b = W_f f + W_g g + b)."""
+    F_ = feat.shape[-1]
+    goal_in = F.linear(goal, linear.weight[:, F_:], linear.bias)  # (N, units)
+    return F.linear(feat, linear.weight[:, :F_]) + goal_in.reshape(goal.shape[0], *[1] * (feat.dim() - 2), -1)
 
 
 def tanh_gaussian_log_prob(u, mean, std):
@@ -126,7 +126,9 @@ class Critic(nn.Module):
     def forward(self, feat, goal):
         """feat (N, ..., F), goal (N, G) or None -> value (N, ...)."""
         assert (goal is None) == (self.goal_dim == 0), "pass a goal exactly when goal_dim > 0"
-        return self.net(with_goal(feat, goal)).squeeze(-1)
+        if goal is None:
+            return self.net(feat).squeeze(-1)
+        return self.net[1:](first_layer_with_goal(self.net[0], feat, goal)).squeeze(-1)
 
 
 class ReturnNorm(nn.Module):

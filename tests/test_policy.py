@@ -260,3 +260,12 @@ def test_eq4_updates_on_a_toy_world_raise_the_goal_reward_beyond_what_ignoring_t
             opt.step()
         P.ema_update(slow_critic, critic, cfg.slow_critic_rate)
     assert first > -1.3 and reward > -0.6, (first, reward)  # ignoring g: -1 at best
+
+
+def test_critic_with_the_goal_share_computed_once_equals_the_mlp_on_feat_and_goal():
+    torch.manual_seed(0)
+    cfg = P.ActorCriticConfig(**P.PRESETS["smoke"])
+    critic = P.Critic(cfg, 6, 4)
+    feat, goal = torch.randn(5, 3, 6), torch.randn(5, 4)  # (N, H + 1, F), (N, G)
+    expected = critic.net(torch.cat([feat, goal[:, None].expand(-1, 3, -1)], -1)).squeeze(-1)
+    assert torch.allclose(critic(feat, goal), expected, atol=1e-6)
