@@ -12,6 +12,7 @@ of the demo's task, mean +- standard error over the episodes, beside uniform ran
 is not in D_body (Sec. 5) and is reported on its own line, outside the average.
 
     python train.py --evaluate --run-dir runs/walker_state_cpu_s0   # writes runs/<name>/goal_reaching.json
+    python evaluate.py runs/walker_state_cpu_s0 runs/walker_state_cpu_s1 runs/walker_state_cpu_s2   # over seeds
 """
 import json
 import os
@@ -130,9 +131,40 @@ def learning_curve(run_dir):
                 ax.plot(*zip(*points), label=label)
         ax.set_title(title, fontsize=10)
         ax.set_xlabel("update")
-        ax.legend(fontsize=8)
+        if ax.lines:
+            ax.legend(fontsize=8)
     fig.tight_layout()
     path = os.path.join(run_dir, "learning_curve.png")
     fig.savefig(path, dpi=80)
     plt.close(fig)
     return path
+
+
+def across_runs(run_dirs):
+    """Training seeds compared: each run's goal_reaching.json reduced to its per-task means, then mean +- s.e. over the
+    runs (the s.e. of a claim about the method, not about one agent's episodes)."""
+    per_run = {}
+    for run_dir in run_dirs:
+        path = os.path.join(run_dir, "goal_reaching.json")
+        if not os.path.exists(path):
+            raise FileNotFoundError(f"no {path}: run `python train.py --evaluate --run-dir {run_dir}` first")
+        scores = json.load(open(path))
+        per_run[run_dir] = {t: float(np.mean(s["policy"])) for t, s in scores.items()}
+        per_run[run_dir]["average"] = float(np.mean([per_run[run_dir][t] for t in BODY_TASKS if t in scores]))
+    columns = list(next(iter(per_run.values())))
+    lines = ["| run | " + " | ".join(columns) + " |", "|---|" + "---|" * len(columns)]
+    lines += [f"| {r} | " + " | ".join(f"{v[c]:.1f}" for c in columns) + " |" for r, v in per_run.items()]
+    lines.append(f"| mean +- s.e. over {len(per_run)} runs | " + " | ".join(
+        f"{np.mean([v[c] for v in per_run.values()]):.1f} +- {stderr([v[c] for v in per_run.values()]):.1f}" for c in columns) + " |")
+    return lines
+
+
+if __name__ == "__main__":
+    import argparse
+
+    parser = argparse.ArgumentParser(description="Goal reaching of several phase-1 runs (e.g. training seeds), mean +- s.e. over runs.")
+    parser.add_argument("runs", nargs="+", help="run folders with goal_reaching.json (train.py writes it)")
+    try:
+        print("\n".join(across_runs(parser.parse_args().runs)))
+    except FileNotFoundError as error:
+        raise SystemExit(f"error: {error}")

@@ -1,0 +1,48 @@
+"""evaluate.py: the benchmark's tables by hand, over runs, and the batched episodes against the environment's own returns."""
+import json
+import os
+
+import numpy as np
+import pytest
+
+import evaluate
+
+
+def test_summary_and_across_runs_by_hand(tmp_path):
+    runs = []
+    for k, (stand, walk, run) in enumerate([([10, 20], [50, 70], [0, 10]), ([30, 30], [40, 40], [20, 20])]):
+        folder = tmp_path / f"r{k}"
+        folder.mkdir()
+        scores = {"stand": {"policy": stand, "random": [0, 0]}, "walk": {"policy": walk, "random": [1, 3]},
+                  "run": {"policy": run, "random": [0, 0]}, "jump": {"policy": [99, 99], "random": [0, 0]}}
+        evaluate.write_goal_reaching(str(folder), scores)
+        runs.append(str(folder))
+    lines = evaluate.summary(scores)
+    assert lines[-1].split()[:2] == ["average", "stand/walk/run"] and "30.0 +-  0.0" in lines[-1]  # (30 + 40 + 20) / 3, jump left out
+    assert "(not in D_body)" in lines[4]
+    table = evaluate.across_runs(runs)
+    # run 0: stand 15, walk 60, run 5, average 26.67; run 1: 30, 40, 20, average 30 -> mean 28.33, s.e. 1.67
+    assert table[-1].startswith("| mean +- s.e. over 2 runs | 22.5 +- 7.5 | 50.0 +- 10.0 | 12.5 +- 7.5 | 99.0 +- 0.0 | 28.3 +- 1.7 |")
+    with pytest.raises(FileNotFoundError, match="train.py --evaluate --run-dir"):
+        evaluate.across_runs([str(tmp_path)])
+
+
+def test_run_episodes_sums_each_environment_s_true_reward(smoke_run):
+    """Random actions in two envs at once: each return equals the env's reward summed over the same actions."""
+    import envs
+    import train
+
+    cfgs, models, _ = train.load_run(smoke_run)
+    env_list = [envs.make_env("walker", "walk") for _ in range(2)]
+    returns, frames = evaluate.run_episodes(env_list, models, None, 5, "state", seed=3, render=True, random_actions=True)
+    assert returns.shape == (2,) and frames.shape == (2, 6, 64, 64, 3)
+    rng = np.random.default_rng(3)
+    for env, seed in zip(env_list, (3, 4)):
+        env.reset(seed=seed)
+    total = np.zeros(2)
+    for _ in range(5):
+        actions = rng.uniform(-1, 1, (2, env_list[0].action_dim)).astype(np.float32)
+        total += [env.step(a)[1] for env, a in zip(env_list, actions)]
+    assert np.allclose(returns, total)
+    scores = json.load(open(os.path.join(smoke_run, "goal_reaching.json")))
+    assert set(scores) == {"stand", "walk", "run", "jump"}
