@@ -18,11 +18,11 @@ def expert_dir(tmp_path, monkeypatch):
 def test_dropped_task_keeps_latest_policy_and_warm_start_copies(expert_dir):
     ckpt_dir = str(expert_dir / "ckpt")
     experts.train("walker", ["stand", "walk", "run"], experts.ExpertConfig(**TINY), ckpt_dir, resume=False)
-    state = torch.load(os.path.join(ckpt_dir, "walker.pt"), weights_only=False)
+    state = torch.load(os.path.join(ckpt_dir, "walker.pt"), weights_only=True)
     assert state["step"] == 12 and state["tasks"] == ["stand", "walk", "run"]
 
     # resume without stand: its final file is its step-12 actor
-    experts.train("walker", ["walk", "run"], experts.ExpertConfig(**TINY), ckpt_dir, resume=True)
+    experts.train("walker", ["walk", "run"], experts.ExpertConfig(**TINY), ckpt_dir, resume=True, replace_committed=True)
     stand = torch.load(experts.expert_path("walker", "stand"))
     assert stand["step"] == 12
     for key, value in stand["actor"].items():
@@ -60,7 +60,7 @@ def test_warm_start_rejects_unknown_task(expert_dir):
 
 def test_compact_state_resumes_tasks_in_any_order(expert_dir):
     experts.train("walker", ["stand", "walk"], experts.ExpertConfig(**TINY), str(expert_dir / "a"), resume=False)
-    full = torch.load(str(expert_dir / "a" / "walker.pt"), weights_only=False)
+    full = torch.load(str(expert_dir / "a" / "walker.pt"), weights_only=True)
     state = experts.load_compact("walker", ["walk", "stand"])  # per-task files, stacked in the order asked
     assert state["step"] == 12
     for key, value in full["actor"].items():
