@@ -45,6 +45,7 @@ import collect
 import envs
 import ot_reward
 import policy
+import rundir
 import train
 from video_encoder import check_same_encoder
 
@@ -71,7 +72,7 @@ class ImitateConfig:
 
 
 PRESETS = {
-    "smoke": dict(steps=3, starts=8, seeds=2, eval_steps=10, demo_stride=1),
+    "smoke": dict(steps=3, starts=8, seeds=2, eval_steps=10, demo_stride=1, critic_warmup=1),
     "cpu": dict(),
     "paper": dict(steps=2000, starts=256, demo_stride=1),
 }
@@ -148,6 +149,22 @@ def multi_goal_loss(models, start, goal, body_goals, bc, cfgs):  # Eq. 4 during 
     return a_loss, c_loss, metrics
 
 
+def checked_step(opt, loss, what, seed, update, clip=None):
+    """opt.step() on `loss`, unless the loss or a gradient is not finite or the loss diverged (train.DIVERGED): then a
+    one-line error, and nothing more is appended to results.jsonl."""
+    opt.zero_grad(set_to_none=True)
+    bad = "" if torch.isfinite(loss) and abs(loss.item()) < train.DIVERGED else f"is {loss.item():.3g}"
+    if not bad:
+        loss.backward()
+        params = [p for group in opt.param_groups for p in group["params"]]
+        if clip:
+            torch.nn.utils.clip_grad_norm_(params, clip)  # as in phase 1
+        bad = "" if all(torch.isfinite(p.grad).all() for p in params if p.grad is not None) else "has a non-finite gradient"
+    if bad:
+        raise ValueError(f"GIIL-FT seed {seed}: {what} {bad} at update {update}: stopped (a learning rate too high? --goal-lr, --critic-lr)")
+    opt.step()
+
+
 def finetune_goal(models, cfgs, ic, ot_cfg, p_goal, demo_p, seed, device, optim_states=None):
     """GIIL-FT: optimise g (and psi by L_MG) for ic.steps updates from the zero-shot goal q(s | p_goal), p_goal (D,) the
     first demo's last feature. Returns the final g (F,). optim_states: the phase-1 checkpoint's optimiser states, from
@@ -199,18 +216,13 @@ def finetune_goal(models, cfgs, ic, ot_cfg, p_goal, demo_p, seed, device, optim_
         goal = current_goal()
         gi_loss, ot_loss, metrics = goal_inference_loss(models, critic_ot, slow_ot, goal, start, demo, cfgs, ot_cfg, offsets, ic.value_only)
         warming_up = step < ic.critic_warmup
-        for opt, loss in [(opt_ot, ot_loss)] if warming_up else [(opt_goal, gi_loss), (opt_ot, ot_loss)]:
-            opt.zero_grad(set_to_none=True)
-            loss.backward()
-            opt.step()
+        for opt, loss, what in [(opt_ot, ot_loss, "V_ot loss")] if warming_up else [(opt_goal, gi_loss, "Eq. 5 L_GI"), (opt_ot, ot_loss, "V_ot loss")]:
+            checked_step(opt, loss, what, seed, step)
         policy.ema_update(slow_ot, critic_ot, ac.slow_critic_rate)
         if ic.finetune_policy:
             a_loss, c_loss, _ = multi_goal_loss(models, body_start, goal, body_goals, bc, cfgs)
-            for opt, loss in ((opt_actor, a_loss), (opt_critic, c_loss)):
-                opt.zero_grad(set_to_none=True)
-                loss.backward()
-                torch.nn.utils.clip_grad_norm_(opt.param_groups[0]["params"], ac.grad_clip)  # as in phase 1
-                opt.step()
+            for opt, loss, what in ((opt_actor, a_loss, "Eq. 4 actor loss"), (opt_critic, c_loss, "Eq. 4 critic loss")):
+                checked_step(opt, loss, what, seed, step, ac.grad_clip)
             policy.ema_update(models["slow_critic"], models["critic"], ac.slow_critic_rate)
         bar.set_postfix(ot=f"{metrics['ot_reward']:.4f}")
     with torch.no_grad():
@@ -230,13 +242,18 @@ def write_video(path, demo_frames, agent_frames):
 def imitate(run_dir, demo, view, finetune, ic, zero_shot=True):
     """GIIL-ZS (unless not zero_shot) and GIIL-FT (with finetune) for one demo folder; appends each evaluation
     to runs/<name>/results.jsonl and returns the rows."""
+    rundir.check_flags(ic)
+    if finetune and ic.critic_warmup >= ic.steps:
+        raise ValueError(f"--critic-warmup {ic.critic_warmup} is not below --steps {ic.steps}: the goal would never move (GIIL-FT = GIIL-ZS)")
     device = "cuda" if torch.cuda.is_available() else "cpu"
     cfgs, models, ckpt = train.load_run(run_dir, device)
     tc = cfgs["train"]
     torch.set_num_threads(tc.threads)
     folder = demo_folder(tc.data, demo, view)
     demo_body, task = demo.rsplit("_", 1)
-    demos = collect.load_folder(folder, ("pixels", "p"))
+    demos = collect.load_folder(folder, ("pixels", "p"))  # one collection: every demo of one length
+    if finetune and len(demos[0]["p"]) < cfgs["ac"].horizon + 2:
+        raise ValueError(f"{folder}: demos of {len(demos[0]['p'])} steps are too short for imagined segments of {cfgs['ac'].horizon}; collect longer ones")
     for k, d in enumerate(demos):
         check_same_encoder(ckpt["encoder"], d["encoder"], os.path.join(folder, f"{k:02d}.npz"))
     demo_returns = [round(d["return"], 3) for d in demos]  # identifies this D_demo: --table ignores rows of older demos
@@ -259,8 +276,7 @@ def imitate(run_dir, demo, view, finetune, ic, zero_shot=True):
         row = {"agent": tc.env, "demo": demo, "view": view, "task": task, "setting": where, "method": method, "seed": seed,
                "score": float(np.mean(scores)), "episode_scores": scores, "time": round(time.time() - t0, 1), "demo_returns": demo_returns,
                "config": result_config(ic, method)}
-        with open(results_path, "a") as f:
-            f.write(json.dumps(row) + "\n")
+        rundir.append_jsonl(results_path, row)
         rows.append(row)
 
     with torch.no_grad():
@@ -314,13 +330,9 @@ def demo_of(agent, task, where):
 def load_results(run_dir):
     """The latest row per (demo, view, method, seed, demos' returns, settings) of runs/<name>/results.jsonl: a rerun
     replaces its own earlier result, never one made with other demos or settings."""
-    path = os.path.join(run_dir, "results.jsonl")
     rows = {}
-    if os.path.exists(path):
-        with open(path) as f:
-            for line in f:
-                r = json.loads(line)
-                rows[(r["demo"], r["view"], r["method"], r["seed"], json.dumps(r.get("demo_returns")), json.dumps(r.get("config")))] = r
+    for r in rundir.read_jsonl(os.path.join(run_dir, "results.jsonl")):
+        rows[(r["demo"], r["view"], r["method"], r["seed"], json.dumps(r.get("demo_returns")), json.dumps(r.get("config")))] = r
     return list(rows.values())
 
 
@@ -337,6 +349,7 @@ def table(run_dir, ic, settings=SETTINGS, demos_per_cell=10):
     made with the demos now on disk (their returns match) and with the settings asked
     for (result_config): regenerating D_demo or changing a setting makes the cells run again instead of mixing
     old and new results."""
+    rundir.check_flags(ic)
     cfgs = train.load_run(run_dir)[0]
     agent, current = cfgs["train"].env, []
     for task in envs.TASKS:
@@ -352,8 +365,7 @@ def table(run_dir, ic, settings=SETTINGS, demos_per_cell=10):
             current += cell()
     text = markdown_tables(agent, current)
     path = os.path.join(run_dir, "tables.md")
-    with open(path, "w") as f:
-        f.write(text)
+    collect.atomic_write(path, lambda f: f.write(text.encode()))
     print(text)
     print(f"wrote {path}")
 

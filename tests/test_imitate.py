@@ -63,7 +63,7 @@ def test_demo_features_from_another_encoder_or_nan_are_errors(smoke_run, smoke_d
     shutil.copytree(smoke_data, data)
     run = str(tmp_path / "run")
     shutil.copytree(smoke_run, run)
-    ckpt = torch.load(os.path.join(run, "checkpoint.pt"), weights_only=False)
+    ckpt = torch.load(os.path.join(run, "checkpoint.pt"), weights_only=True)
     ckpt["config"]["train"]["data"] = data
     torch.save(ckpt, os.path.join(run, "checkpoint.pt"))
     path = os.path.join(data, "demos", "walker_walk_side", "01.npz")
