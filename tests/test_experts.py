@@ -5,6 +5,7 @@ import pytest
 import torch
 
 import experts
+import sac
 
 TINY = dict(steps=12, seed_steps=4, batch=8, hidden=8, snapshot_every=12, eval_every=10_000, checkpoint_minutes=0.0, final_episodes=1)
 
@@ -83,3 +84,22 @@ def test_final_expert_is_the_best_snapshot(expert_dir):
     assert saved["step"] == 200
     evaluated = experts.envs.normalized_score("stand", experts.evaluate("walker", "stand", 1).mean())  # of the float16 copy
     assert saved["score"] == pytest.approx(float(evaluated), abs=0.1)
+
+
+def test_sac_log_prob_matches_torch_distributions():
+    torch.manual_seed(0)
+    mean, std = torch.randn(5, 3), torch.rand(5, 3) + 0.1
+    u = mean + std * torch.randn(5, 3)
+    squashed = torch.distributions.TransformedDistribution(torch.distributions.Normal(mean, std), torch.distributions.TanhTransform())
+    expected = squashed.log_prob(torch.tanh(u)).sum(-1)
+    assert torch.allclose(sac.tanh_gaussian_log_prob(u, mean, std), expected, atol=1e-4)
+
+
+def test_data_and_expert_code_never_imports_method_files():
+    import subprocess
+    import sys
+
+    code = ("import sys, collect, envs, experts, sac, video_encoder, rundir; "
+            "print(sorted({'policy', 'distance', 'world_model', 'goal_vae', 'ot_reward', 'train', 'imitate'} & set(sys.modules)))")
+    out = subprocess.run([sys.executable, "-c", code], cwd=os.path.dirname(os.path.dirname(os.path.abspath(__file__))), capture_output=True, text=True)
+    assert out.returncode == 0 and out.stdout.strip() == "[]", out.stderr[-2000:]
