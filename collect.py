@@ -57,6 +57,9 @@ PRESETS = {
     "cpu": dict(),  # the defaults: ~200 episodes, collected in minutes on 2 cores
     "paper": dict(explore_episodes=2000, task_episodes=1000),
 }
+# Where each preset's datasets go by default (--data): the smoke preset's 20-step episodes never share a folder with the
+# 500-step ones of the others (cpu and paper episodes are alike: paper's D_body extends cpu's)
+DATA = {"smoke": os.path.join("data", "smoke"), "cpu": "data", "paper": "data"}
 
 
 def episode_jobs(body, cfg, data):
@@ -80,20 +83,20 @@ def episode_jobs(body, cfg, data):
     return out
 
 
-def demo_jobs(cfg, data):
-    """D_demo: one simulation per (body, task, index), written to both views' folders."""
+def demo_jobs(cfg, data, demos=None):
+    """D_demo: one simulation per (body, task, index), written to both views' folders; `demos` limits the (body, task)
+    pairs (default: all)."""
     import experts
 
     out = []
-    for body in envs.BODIES:
-        for task in envs.TASKS:
-            if not os.path.exists(experts.expert_path(body, task)):
-                raise FileNotFoundError(f"no final {body} {task} expert at {experts.expert_path(body, task)}: train it with `python experts.py --body {body}`")
-            for k in range(cfg.demo_episodes):
-                paths = [os.path.join(data, "demos", f"{body}_{task}_{view}", f"{k:02d}.npz") for view in envs.VIEWS]
-                job = dict(kind="demo", body=body, task=task, index=k, snapshot=None, steps=cfg.episode_steps, noise=0.0,
-                           seed=[cfg.seed, 7, envs.BODIES.index(body), envs.TASKS.index(task), k], views=envs.VIEWS)
-                out.append((paths, job))
+    for body, task in demos or [(b, t) for b in envs.BODIES for t in envs.TASKS]:
+        if not os.path.exists(experts.expert_path(body, task)):
+            raise FileNotFoundError(f"no final {body} {task} expert at {experts.expert_path(body, task)}: train it with `python experts.py --body {body}`")
+        for k in range(cfg.demo_episodes):
+            paths = [os.path.join(data, "demos", f"{body}_{task}_{view}", f"{k:02d}.npz") for view in envs.VIEWS]
+            job = dict(kind="demo", body=body, task=task, index=k, snapshot=None, steps=cfg.episode_steps, noise=0.0,
+                       seed=[cfg.seed, 7, envs.BODIES.index(body), envs.TASKS.index(task), k], views=envs.VIEWS)
+            out.append((paths, job))
     return out
 
 
@@ -327,8 +330,9 @@ def collect_body(body, cfg, data="data", workers=2, encoder="default"):
     return folder
 
 
-def collect_demos(cfg, data="data", workers=2, encoder="default"):
-    run_jobs(demo_jobs(cfg, data), encoder, workers, "D_demo")
+def collect_demos(cfg, data="data", workers=2, encoder="default", demos=None):
+    """Writes D_demo (skips what exists), of the (body, task) pairs `demos` (default: all); returns its folder."""
+    run_jobs(demo_jobs(cfg, data, demos), encoder, workers, "D_demo" if demos is None else "D_demo " + " ".join(f"{b}_{t}" for b, t in demos))
     return os.path.join(data, "demos")
 
 
@@ -338,11 +342,11 @@ def main():
     parser.add_argument("--demos", action="store_true", help="collect D_demo: every body x task x view")
     parser.add_argument("--features", action="store_true", help="recompute video features of everything under --data")
     parser.add_argument("--preset", choices=PRESETS, default="cpu")
-    parser.add_argument("--data", default="data")
+    parser.add_argument("--data", default=None, help="default: data, or data/smoke for --preset smoke (collect.DATA)")
     parser.add_argument("--workers", type=int, default=os.cpu_count())
     parser.add_argument("--encoder", default="default", help="'default' or a TorchScript video model file (video_encoder.py)")
     args = parser.parse_args()
-    cfg = CollectConfig(**PRESETS[args.preset])
+    cfg, args.data = CollectConfig(**PRESETS[args.preset]), args.data or DATA[args.preset]
     if not (args.env or args.demos or args.features):
         parser.error("nothing to do: pass --env BODY, --demos or --features")
     if args.env:

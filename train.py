@@ -50,7 +50,7 @@ class TrainConfig:
 
 
 TRAIN_PRESETS = {
-    "smoke": dict(steps=6, policy_start=2, holdout_every=3, eval_goals=2, eval_steps=10, log_every=2, checkpoint_every=3),
+    "smoke": dict(steps=6, policy_start=2, holdout_every=3, eval_goals=2, eval_steps=10, log_every=2, checkpoint_every=3, data=collect.DATA["smoke"]),
     "cpu": dict(),
     "paper": dict(steps=100_000, policy_start=5_000, eval_steps=500, log_every=1000, checkpoint_every=5000),
 }
@@ -86,7 +86,14 @@ def resolve_configs(args, preset):
         cls, presets, _ = COMPONENTS[name]
         given = {f.name: getattr(args, f"{name}.{f.name}") for f in dataclasses.fields(cls)}
         out[name] = cls(**{**presets[preset], **{k: v for k, v in given.items() if v is not None}})
+    out["train"].preset = preset  # the preset these sizes come from, whichever way it was passed
     return out
+
+
+def default_run_dir(env, preset, seed=0, obs=None):
+    """runs/<env>_<obs>_<preset>_s<seed> (obs: the preset's unless given): where train.py writes and imitate.py reads."""
+    obs = obs or world_model.PRESETS[preset].get("obs", world_model.WorldModelConfig.obs)
+    return os.path.join("runs", f"{env}_{obs}_{preset}_s{seed}")
 
 
 class Segments:
@@ -341,13 +348,11 @@ def pretrain(cfgs, run_dir, resume):
             saved = save()
     bar.close()
     imagination = evaluate_imagination(models, cfgs, held_out, device)
-    with open(os.path.join(run_dir, "imagination.json"), "w") as f:
-        json.dump(imagination, f, indent=1)
+    collect.atomic_write(os.path.join(run_dir, "imagination.json"), lambda f: f.write(json.dumps(imagination, indent=1).encode()))
     print(f"held-out D_body: goal decoder's cosine to the true p_t {imagination['posterior_p_cos']:.2f} on posterior states, "
           f"{imagination['open_loop_p_cos']:.2f} on {wc.seq_len - wc.seq_len // 2} open-loop imagined steps (world-model error {imagination['open_loop']:.3f})")
     rows = evaluate_goal_reaching(models, cfgs, held_out, encoder, device)
-    with open(os.path.join(run_dir, "goal_reaching.json"), "w") as f:
-        json.dump(rows, f, indent=1)
+    collect.atomic_write(os.path.join(run_dir, "goal_reaching.json"), lambda f: f.write(json.dumps(rows, indent=1).encode()))
     mean = lambda key, rs: float(np.mean([r[key] for r in rs])) if rs else float("nan")
     tasked = [r for r in rows if r["task"] in envs.TASKS]
     print(f"goal reaching over {len(rows)} held-out goals: video-feature similarity to the goal policy {mean('policy_similarity', rows):.3f} "
@@ -373,7 +378,7 @@ def main():
     envs._check_name("body", getattr(args, "train.env") or TrainConfig.env, envs.BODIES)
     cfgs = resolve_configs(args, getattr(args, "train.preset") or "cpu")
     tc = cfgs["train"]
-    run_dir = args.run_dir or os.path.join("runs", f"{tc.env}_{cfgs['wm'].obs}_{tc.preset}_s{tc.seed}")
+    run_dir = args.run_dir or default_run_dir(tc.env, tc.preset, tc.seed, cfgs["wm"].obs)
     train(cfgs, run_dir, args.resume)
 
 
