@@ -16,6 +16,7 @@ import collect
 import experts
 import imitate
 import rundir
+import tables
 import train
 from conftest import train_args
 
@@ -149,6 +150,7 @@ def test_collection_into_another_presets_folder_is_refused(smoke_data, tmp_path)
     with pytest.raises(ValueError, match=r"explore_0000.npz is not a 30-step episode .*pass another --data"):
         collect.collect_body("walker", longer, data, workers=1)
     assert snapshot(data) == before
+    assert train.resolve_configs(train_args(), "smoke")["train"].data == collect.DATA["smoke"] != collect.DATA["cpu"]  # apart by default
 
 
 # --- 3. divergence stops the run, names what was kept ---
@@ -261,13 +263,13 @@ def test_results_with_a_cut_last_line_still_table(tmp_path):
     row = {"demo": "walker_run", "view": "side", "method": "GIIL-ZS", "seed": 0, "score": 1.0}
     with open(path, "w") as f:
         f.write(json.dumps(row) + "\n" + json.dumps(row)[:20])  # a kill while appending
-    assert imitate.load_results(str(tmp_path)) == [row]
+    assert tables.load_results(str(tmp_path)) == [row]
     rundir.append_jsonl(path, dict(row, seed=1))
     assert [r["seed"] for r in rundir.read_jsonl(path)] == [0, 1] and open(path).read().count("\n") == 2
     with open(path, "a") as f:
         f.write("not json\n" + json.dumps(row) + "\n")
     with pytest.raises(ValueError, match=r"results.jsonl: line 3 is not a JSON row"):
-        imitate.load_results(str(tmp_path))
+        tables.load_results(str(tmp_path))
 
 
 # --- 6. a bad episode file is named ---
