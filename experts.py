@@ -202,7 +202,6 @@ def train(body, tasks, cfg, ckpt_dir, resume, warm_start=(), replace_committed=F
     if existing and not replace_committed:
         raise ValueError(f"{existing[0]} and {len(existing) - 1} more committed files of the {body} {'/'.join(tasks)} experts exist: "
                          f"this run would overwrite them; pass --replace-committed to let it")
-    os.makedirs(ckpt_dir, exist_ok=True)
     torch.set_num_threads(1)
     n = len(tasks)
     env_list = [envs.make_env(body, task, seed=cfg.seed + 100 * k) for k, task in enumerate(tasks)]
@@ -276,6 +275,7 @@ def train(body, tasks, cfg, ckpt_dir, resume, warm_start=(), replace_committed=F
                        "critic_target": member(critic_target, [k, k + n]), "log_alpha": log_alpha.detach()[k].clone()}
             collect.atomic_write(compact_path(body, task), lambda f: torch.save(compact, f))
 
+    os.makedirs(ckpt_dir, exist_ok=True)
     log_path = os.path.join(ckpt_dir, f"{body}_{'-'.join(tasks)}_log.csv")
     obs = np.stack([env.reset()[0] for env in env_list])
     last_ckpt, t0, losses = time.time(), time.time(), (float("nan"), float("nan"))

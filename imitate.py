@@ -25,8 +25,9 @@ Choices where the paper is silent (README, "Deviations"):
   (the features are of 8-frame windows, so neighbouring frames are alike; the random offset keeps a
   fixed stride from aliasing with a gait).
 
-    python imitate.py --demo stickman_run [--view side|diagonal] [--run runs/<name>] [--finetune]
-    python imitate.py --table [--run runs/<name>]
+    python imitate.py --demo stickman_run [--view side|diagonal] [--run runs/<name> | --env walker|stickman] [--preset P] [--finetune]
+    python imitate.py --table [--run runs/<name>]        (tables.py)
+Missing demos of the one body x task imitated are collected first (collect.py, the run's preset and data folder).
 """
 import argparse
 import copy
@@ -151,7 +152,7 @@ def checked_step(opt, loss, what, seed, update, clip=None):
     """opt.step() on `loss`, unless the loss or a gradient is not finite or the loss diverged (train.DIVERGED): then a
     one-line error, and nothing more is appended to results.jsonl."""
     opt.zero_grad(set_to_none=True)
-    bad = "" if torch.isfinite(loss) and abs(loss.item()) < train.DIVERGED else f"is {loss.item():.3g}"
+    bad = "" if abs(loss.item()) < train.DIVERGED else f"is {loss.item():.3g}"  # False for nan and inf too
     if not bad:
         loss.backward()
         params = [p for group in opt.param_groups for p in group["params"]]

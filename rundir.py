@@ -7,7 +7,7 @@ lock          runs/<name>/lock, created with O_EXCL and holding the writer's pid
 trim_jsonl    on resume, metrics.jsonl keeps only the rows up to the checkpoint's update (the killed run logged
               further updates, which the resumed run logs again)
 read_jsonl    the rows of a .jsonl log; a last line cut short by a kill is dropped, any other bad line is an error
-append_jsonl  one row, after dropping such a cut line (so the new row starts on a line of its own)
+append_jsonl  one row, on a line of its own after such a cut line
 """
 import contextlib
 import dataclasses
@@ -50,7 +50,7 @@ def _alive(pid):
     except ProcessLookupError:
         return False
     except PermissionError:  # another user's process
-        return True
+        pass
     return True
 
 
@@ -59,18 +59,23 @@ def lock(run_dir):
     """Hold run_dir/lock while the block runs; ValueError naming the other process if a live one holds it."""
     os.makedirs(run_dir, exist_ok=True)
     path = os.path.join(run_dir, "lock")
-    for attempt in range(2):
+    for attempt in range(3):
         try:
             fd = os.open(path, os.O_CREAT | os.O_EXCL | os.O_WRONLY)
             break
         except FileExistsError:
-            with open(path) as f:
-                text = f.read().strip()
-            if attempt == 0 and not (text.isdigit() and _alive(int(text))):
-                os.remove(path)  # stale: its process was killed
+            try:
+                with open(path) as f:
+                    holder = f.read().strip()
+            except FileNotFoundError:  # released meanwhile: try again
                 continue
-            raise ValueError(f"{run_dir} is in use by process {text or '?'} (its lock file {path}): wait for that run to end, "
-                             f"or train into another --run-dir; delete {path} only if no such process runs") from None
+            if holder.isdigit() and _alive(int(holder)):
+                raise ValueError(f"{run_dir} is in use by process {holder} (its lock file {path}): wait for that run to end, "
+                                 f"or train into another --run-dir; delete {path} only if no such process runs") from None
+            with contextlib.suppress(FileNotFoundError):
+                os.remove(path)  # stale: its process was killed
+    else:
+        raise ValueError(f"{run_dir}: could not take its lock file {path} (other processes are starting on it); try again")
     with os.fdopen(fd, "w") as f:
         f.write(str(os.getpid()))
     try:
@@ -104,9 +109,16 @@ def trim_jsonl(path, step):
 
 
 def append_jsonl(path, row):
+    """Append one row. A last line without its newline (a kill) is completed if it is a whole row, as read_jsonl
+    counts it, and dropped otherwise, so that the new row starts on a line of its own."""
     with open(path, "a+b") as f:
         f.seek(0)
         text = f.read()
-        if text and not text.endswith(b"\n"):  # a row cut short by a kill
-            f.truncate(text.rfind(b"\n") + 1)
+        last = text[text.rfind(b"\n") + 1 :]
+        if last:
+            try:
+                json.loads(last)
+                f.write(b"\n")
+            except json.JSONDecodeError:
+                f.truncate(len(text) - len(last))
         f.write((json.dumps(row) + "\n").encode())

@@ -290,7 +290,7 @@ def pretrain(cfgs, run_dir, resume):
     def apply(name, loss, term):
         """One optimiser step, unless the loss or its gradient is not finite or the loss diverged: then stop, weights untouched."""
         optims[name].zero_grad(set_to_none=True)
-        bad = "" if torch.isfinite(loss) and abs(loss.item()) < DIVERGED else f"is {loss.item():.3g}"
+        bad = "" if abs(loss.item()) < DIVERGED else f"is {loss.item():.3g}"  # False for nan and inf too
         if not bad:
             loss.backward()
             norm = torch.nn.utils.clip_grad_norm_(models[name].parameters(), clip[name])

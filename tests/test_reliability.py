@@ -115,7 +115,7 @@ def test_experts_never_overwrite_committed_weights_unasked(committed, tmp_path):
         experts.train("walker", ["stand", "walk"], cfg, str(tmp_path / "missing"), resume=True, replace_committed=True)
     with pytest.raises(ValueError, match=r"--steps 12 is below step \d{6} of the state resumed"):
         experts.train("walker", ["walk", "run"], cfg, str(tmp_path / "missing"), resume=True, replace_committed=True)
-    assert snapshot(folder) == before
+    assert snapshot(folder) == before and not os.path.exists(tmp_path / "missing")
 
 
 # --- 2. partial or mixed data is completed or refused, never used silently ---
@@ -267,8 +267,12 @@ def test_results_with_a_cut_last_line_still_table(tmp_path):
     rundir.append_jsonl(path, dict(row, seed=1))
     assert [r["seed"] for r in rundir.read_jsonl(path)] == [0, 1] and open(path).read().count("\n") == 2
     with open(path, "a") as f:
+        f.write(json.dumps(dict(row, seed=2)))  # whole, but cut before its newline: kept, like read_jsonl keeps it
+    rundir.append_jsonl(path, dict(row, seed=3))
+    assert [r["seed"] for r in rundir.read_jsonl(path)] == [0, 1, 2, 3]
+    with open(path, "a") as f:
         f.write("not json\n" + json.dumps(row) + "\n")
-    with pytest.raises(ValueError, match=r"results.jsonl: line 3 is not a JSON row"):
+    with pytest.raises(ValueError, match=r"results.jsonl: line 5 is not a JSON row"):
         tables.load_results(str(tmp_path))
 
 
