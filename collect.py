@@ -255,14 +255,16 @@ def load_folder(folder, keys=tuple(KEYS), encoder=None):
 
 
 def _worker(item):
-    """Simulate, compute features, write; returns the paths written (a pool worker, one episode)."""
+    """Simulate, compute features, write the views not on disk yet (a file written is never replaced); returns the
+    paths written (a pool worker, one episode)."""
     paths, job, encoder_spec = item
     from video_encoder import load_encoder
 
     encoder = _worker_encoder(load_encoder, encoder_spec)
-    for path, episode in zip(paths, simulate(job)):
+    written = [(path, episode) for path, episode in zip(paths, simulate(job)) if not os.path.exists(path)]
+    for path, episode in written:
         save_episode(path, dict(episode, p=encoder(episode["pixels"]), encoder=encoder.name))
-    return paths
+    return [path for path, _ in written]
 
 
 _ENCODERS = {}

@@ -133,7 +133,8 @@ def test_killed_collection_is_completed_before_training(smoke_data, tmp_path):
 
 def test_demos_of_two_lengths_are_refused(smoke_run, smoke_data, tmp_path):
     data = str(tmp_path / "data")
-    shutil.copytree(os.path.join(smoke_data, "demos", "walker_run_side"), os.path.join(data, "demos", "walker_run_side"))
+    for view in ("side", "diagonal"):
+        shutil.copytree(os.path.join(smoke_data, "demos", f"walker_run_{view}"), os.path.join(data, "demos", f"walker_run_{view}"))
     path = os.path.join(data, "demos", "walker_run_side", "01.npz")
     episode = dict(np.load(path))
     collect.save_episode(path, {k: v[:11] if v.ndim else v for k, v in episode.items()})
