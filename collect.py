@@ -23,12 +23,15 @@ Episode keys, index t = 0..L (Dreamer alignment, see world_model.py):
 Features are a second pass over stored pixels (`--features`), so a new encoder needs no re-simulation.
 """
 import argparse
+import json
 import multiprocessing
 import os
+import pickle
 import zipfile
-from dataclasses import dataclass
+from dataclasses import asdict, dataclass
 
 import numpy as np
+import torch
 from tqdm import tqdm
 
 import envs
@@ -36,6 +39,7 @@ import envs
 BODY_TASKS = ("stand", "walk", "run")  # the tasks whose experts' histories enter D_body; jump is held out
 KEYS = {"state": np.float32, "pixels": np.uint8, "action": np.float32, "reward": np.float32, "is_first": np.bool_, "p": np.float32}
 META = ("encoder", "body", "task", "view", "source", "return")
+COMPLETE = "collection.json"  # written into data/<body>/ once all of D_body is on disk: its CollectConfig
 
 
 @dataclass
@@ -53,6 +57,9 @@ PRESETS = {
     "cpu": dict(),  # the defaults: ~200 episodes, collected in minutes on 2 cores
     "paper": dict(explore_episodes=2000, task_episodes=1000),
 }
+# Where each preset's datasets go by default (--data): the smoke preset's 20-step episodes never share a folder with the
+# 500-step ones of the others (cpu and paper episodes are alike: paper's D_body extends cpu's)
+DATA = {"smoke": os.path.join("data", "smoke"), "cpu": "data", "paper": "data"}
 
 
 def episode_jobs(body, cfg, data):
@@ -76,27 +83,25 @@ def episode_jobs(body, cfg, data):
     return out
 
 
-def demo_jobs(cfg, data, bodies=envs.BODIES):
-    """D_demo of `bodies`: one simulation per (body, task, index), written to both views' folders."""
+def demo_jobs(cfg, data, demos=None):
+    """D_demo: one simulation per (body, task, index), written to both views' folders; `demos` limits the (body, task)
+    pairs (default: all)."""
     import experts
 
     out = []
-    for body in bodies:
-        for task in envs.TASKS:
-            if not os.path.exists(experts.expert_path(body, task)):
-                raise FileNotFoundError(f"no final {body} {task} expert at {experts.expert_path(body, task)}: train it with `python experts.py --body {body}`")
-            for k in range(cfg.demo_episodes):
-                paths = [os.path.join(data, "demos", f"{body}_{task}_{view}", f"{k:02d}.npz") for view in envs.VIEWS]
-                job = dict(kind="demo", body=body, task=task, index=k, snapshot=None, steps=cfg.episode_steps, noise=0.0,
-                           seed=[cfg.seed, 7, envs.BODIES.index(body), envs.TASKS.index(task), k], views=envs.VIEWS)
-                out.append((paths, job))
+    for body, task in demos or [(b, t) for b in envs.BODIES for t in envs.TASKS]:
+        if not os.path.exists(experts.expert_path(body, task)):
+            raise FileNotFoundError(f"no final {body} {task} expert at {experts.expert_path(body, task)}: train it with `python experts.py --body {body}`")
+        for k in range(cfg.demo_episodes):
+            paths = [os.path.join(data, "demos", f"{body}_{task}_{view}", f"{k:02d}.npz") for view in envs.VIEWS]
+            job = dict(kind="demo", body=body, task=task, index=k, snapshot=None, steps=cfg.episode_steps, noise=0.0,
+                       seed=[cfg.seed, 7, envs.BODIES.index(body), envs.TASKS.index(task), k], views=envs.VIEWS)
+            out.append((paths, job))
     return out
 
 
 def simulate(job):
     """Run one episode; returns the keys of every view's file (without features)."""
-    import torch
-
     import experts
 
     torch.set_num_threads(1)
@@ -136,24 +141,75 @@ def simulate(job):
     return [dict(common, pixels=np.array(frames[view]), view=view) for view in job["views"]]
 
 
-def save_episode(path, episode):
-    """Atomic write: a temporary name, then rename (a killed run leaves no half-written episode)."""
-    os.makedirs(os.path.dirname(path), exist_ok=True)
-    tmp = path[:-4] + ".tmp.npz"
-    np.savez_compressed(tmp, **episode)
+def atomic_write(path, write):
+    """Every file this project writes goes through here: write(f) fills a temporary file, which is then renamed onto
+    `path`, so a killed run leaves the old file or the new one, never half of one."""
+    os.makedirs(os.path.dirname(path) or ".", exist_ok=True)
+    tmp = path + ".tmp"
+    with open(tmp, "wb") as f:
+        write(f)
     os.replace(tmp, path)
 
 
-def load_episode(path, keys=tuple(KEYS)):
-    """Read and validate one episode: the requested keys (arrays) plus metadata. One-line ValueError otherwise."""
+def save_episode(path, episode):
+    atomic_write(path, lambda f: np.savez_compressed(f, **episode))
+
+
+def load_checkpoint(path, device="cpu"):
+    """A checkpoint read with torch.load(weights_only=True): tensors and plain Python values only, so loading a file
+    runs no code from it. One-line ValueError for a corrupt file or one written in the older pickled format."""
     try:
-        with np.load(path) as f:
-            missing = [k for k in tuple(keys) + META if k not in f.files]
-            if missing:
-                raise ValueError(f"{path}: missing key(s) {', '.join(missing)}; recollect it (delete the file and rerun collect.py)")
-            episode = {k: f[k] for k in tuple(keys) + META}
-    except (zipfile.BadZipFile, OSError, EOFError) as error:
+        return torch.load(path, map_location=device, weights_only=True)
+    except pickle.UnpicklingError:
+        raise ValueError(f"{path} holds pickled Python objects (the format before checkpoints became weights-only): convert it once "
+                         f"with `python train.py --upgrade-checkpoint {path}` (this unpickles it: only for a file you trust)") from None
+    except (RuntimeError, EOFError, OSError) as error:
+        raise ValueError(f"{path}: not a readable checkpoint ({str(error).splitlines()[0]}); delete it or restore it from a copy") from None
+
+
+def plain(obj):
+    """obj with numpy generators as their state dicts, arrays as tensors and numpy scalars as Python numbers: what
+    torch.load(weights_only=True) reads back."""
+    if isinstance(obj, dict):
+        return {k: plain(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return type(obj)(plain(v) for v in obj)
+    if isinstance(obj, np.random.Generator):
+        return obj.bit_generator.state
+    if isinstance(obj, np.ndarray):
+        return torch.from_numpy(obj.copy())
+    return obj.item() if isinstance(obj, np.generic) else obj
+
+
+def generator(state):
+    """The numpy Generator of a checkpoint's plain `bit_generator.state` dict (plain)."""
+    rng = np.random.Generator(getattr(np.random, state["bit_generator"])())
+    rng.bit_generator.state = state
+    return rng
+
+
+def upgrade_checkpoint(path):
+    """Rewrite a checkpoint of the older pickled format (numpy generators and arrays inside) as plain(); its tensors are
+    kept exactly. Unpickles the file: only for a file you trust."""
+    old = torch.load(path, map_location="cpu", weights_only=False)
+    new = plain(old)
+    atomic_write(path, lambda f: torch.save(new, f))
+    return new
+
+
+def load_episode(path, keys=tuple(KEYS)):
+    """Read and validate one episode: the requested keys (arrays) plus metadata and its `path`. One-line ValueError
+    naming the file otherwise."""
+    if not zipfile.is_zipfile(path):  # np.load would read a text file as a pickle, and a .npy as one array
+        raise ValueError(f"{path}: not a readable .npz episode (no zip archive: a text file, a .npy array, a truncated copy?); delete it and rerun collect.py")
+    try:
+        with np.load(path) as archive:
+            episode = {k: archive[k] for k in tuple(keys) + META if k in archive.files}
+    except (zipfile.BadZipFile, OSError, EOFError, ValueError) as error:
         raise ValueError(f"{path}: not a readable .npz episode ({error}); delete it and rerun collect.py") from None
+    missing = [k for k in tuple(keys) + META if k not in episode]
+    if missing:
+        raise ValueError(f"{path}: missing key(s) {', '.join(missing)}; recollect it (delete the file and rerun collect.py)")
     length = len(episode["is_first"]) if "is_first" in episode else None
     for key in keys:
         value = episode[key]
@@ -164,36 +220,51 @@ def load_episode(path, keys=tuple(KEYS)):
             raise ValueError(f"{path}: key {key!r} has {len(value)} steps, expected {length} (>= 2) like the other keys")
         if key == "pixels" and value.shape[1:] != (64, 64, 3):
             raise ValueError(f"{path}: key 'pixels' has shape {value.shape}, expected (T, 64, 64, 3)")
-        if key == "p" and (value.ndim != 2 or not np.all(np.isfinite(value))):
+        if key == "p" and value.ndim != 2:
             raise ValueError(f"{path}: key 'p' must be a finite (T, D) array, got shape {value.shape}")
+        if value.dtype == np.float32 and not np.all(np.isfinite(value)):
+            bad = np.argwhere(~np.isfinite(value))[0]
+            raise ValueError(f"{path}: key {key!r} must be a finite array, has {value[tuple(bad)]} at step {bad[0]}; delete the file and rerun collect.py")
     for key in META[:-1]:
         episode[key] = str(episode[key])
     episode["return"] = float(episode["return"])
+    episode["path"] = path
     return episode
 
 
 def load_folder(folder, keys=tuple(KEYS), encoder=None):
-    """All episodes of a folder, sorted by name; features from two encoders are an error."""
+    """All episodes of a folder, sorted by name. One collection only: features from two encoders, episodes of two
+    lengths or arrays of two widths are an error naming both files."""
     from video_encoder import check_same_encoder
 
     names = sorted(n for n in os.listdir(folder) if n.endswith(".npz") and not n.endswith(".tmp.npz")) if os.path.isdir(folder) else []
     if not names:
         raise FileNotFoundError(f"no episodes in {folder}: run `python collect.py` (see --help)")
     episodes = [load_episode(os.path.join(folder, n), keys) for n in names]
-    for name, episode in zip(names, episodes):
-        check_same_encoder(encoder or episodes[0]["encoder"], episode["encoder"], os.path.join(folder, name))
+    first = episodes[0]
+    for episode in episodes:
+        check_same_encoder(encoder or first["encoder"], episode["encoder"], episode["path"])
+        for key in keys:
+            if episode[key].shape[1:] != first[key].shape[1:]:
+                raise ValueError(f"{episode['path']}: key {key!r} has shape {episode[key].shape[1:]} per step, {first['path']} has "
+                                 f"{first[key].shape[1:]}: one folder holds one body's episodes; delete the odd file and rerun collect.py")
+        if keys and len(episode[keys[0]]) != len(first[keys[0]]):
+            raise ValueError(f"{folder} mixes episodes of {len(first[keys[0]])} and {len(episode[keys[0]])} steps ({first['path']}, "
+                             f"{episode['path']}): two collections (presets?); delete the folder and collect it again")
     return episodes
 
 
 def _worker(item):
-    """Simulate, compute features, write; returns the paths written (a pool worker, one episode)."""
+    """Simulate, compute features, write the views not on disk yet (a file written is never replaced); returns the
+    paths written (a pool worker, one episode)."""
     paths, job, encoder_spec = item
     from video_encoder import load_encoder
 
     encoder = _worker_encoder(load_encoder, encoder_spec)
-    for path, episode in zip(paths, simulate(job)):
+    written = [(path, episode) for path, episode in zip(paths, simulate(job)) if not os.path.exists(path)]
+    for path, episode in written:
         save_episode(path, dict(episode, p=encoder(episode["pixels"]), encoder=encoder.name))
-    return paths
+    return [path for path, _ in written]
 
 
 _ENCODERS = {}
@@ -206,12 +277,23 @@ def _worker_encoder(load_encoder, spec):
     return _ENCODERS[spec]
 
 
+def check_length(jobs):
+    """Episodes on disk of another length than the jobs' (another preset's) are an error: the two would mix."""
+    done = [p for paths, _ in jobs for p in paths if os.path.exists(p)]
+    steps = jobs[0][1]["steps"] if jobs else None
+    if done and len(load_episode(done[0], ("is_first",))["is_first"]) != steps + 1:
+        raise ValueError(f"{done[0]} is not a {steps}-step episode like the ones this collection makes (another preset's?): "
+                         f"pass another --data, or delete {os.path.dirname(done[0])} to collect it again")
+
+
 def run_jobs(jobs, encoder_spec, workers, desc):
     """Runs the jobs whose files are not all on disk yet (resume), in `workers` processes."""
+    check_length(jobs)
     todo = [(paths, job, encoder_spec) for paths, job in jobs if not all(os.path.exists(p) for p in paths)]
     print(f"{desc}: {len(jobs) - len(todo)} of {len(jobs)} episodes already on disk")
     if not todo:
         return
+    workers = min(workers, len(todo))
     if workers <= 1:
         results = map(_worker, todo)
     else:  # spawn: no EGL context or torch thread pool is inherited from the parent
@@ -239,14 +321,20 @@ def recompute_features(data, encoder_spec):
 
 
 def collect_body(body, cfg, data="data", workers=2, encoder="default"):
-    """Writes D_body of one body (skips what exists); returns its folder."""
+    """Writes D_body of one body (skips what exists), then its COMPLETE file; returns its folder."""
     envs._check_name("body", body, envs.BODIES)
-    run_jobs(episode_jobs(body, cfg, data), encoder, workers, f"D_body {body}")
-    return os.path.join(data, body)
+    folder, jobs = os.path.join(data, body), episode_jobs(body, cfg, data)
+    check_length(jobs)  # first: another preset's folder is left as it was
+    if os.path.exists(os.path.join(folder, COMPLETE)):  # not complete until this collection is
+        os.remove(os.path.join(folder, COMPLETE))
+    run_jobs(jobs, encoder, workers, f"D_body {body}")
+    atomic_write(os.path.join(folder, COMPLETE), lambda f: f.write(json.dumps(asdict(cfg)).encode()))
+    return folder
 
 
-def collect_demos(cfg, data="data", workers=2, encoder="default", bodies=envs.BODIES):
-    run_jobs(demo_jobs(cfg, data, bodies), encoder, workers, "D_demo")
+def collect_demos(cfg, data="data", workers=2, encoder="default", demos=None):
+    """Writes D_demo (skips what exists), of the (body, task) pairs `demos` (default: all); returns its folder."""
+    run_jobs(demo_jobs(cfg, data, demos), encoder, workers, "D_demo" if demos is None else "D_demo " + " ".join(f"{b}_{t}" for b, t in demos))
     return os.path.join(data, "demos")
 
 
@@ -256,11 +344,11 @@ def main():
     parser.add_argument("--demos", action="store_true", help="collect D_demo: every body x task x view")
     parser.add_argument("--features", action="store_true", help="recompute video features of everything under --data")
     parser.add_argument("--preset", choices=PRESETS, default="cpu")
-    parser.add_argument("--data", default="data")
+    parser.add_argument("--data", default=None, help="default: data, or data/smoke for --preset smoke (collect.DATA)")
     parser.add_argument("--workers", type=int, default=os.cpu_count())
     parser.add_argument("--encoder", default="default", help="'default' or a TorchScript video model file (video_encoder.py)")
     args = parser.parse_args()
-    cfg = CollectConfig(**PRESETS[args.preset])
+    cfg, args.data = CollectConfig(**PRESETS[args.preset]), args.data or DATA[args.preset]
     if not (args.env or args.demos or args.features):
         parser.error("nothing to do: pass --env BODY, --demos or --features")
     if args.env:

@@ -43,6 +43,7 @@ from dm_control.utils import rewards
 BODIES = ("walker", "stickman")
 TASKS = ("stand", "walk", "run", "jump")
 VIEWS = ("side", "diagonal")
+SETTINGS = ("SE-SV", "SE-CV", "CE-SV", "CE-CV")  # Sec. 5: the demo's body and camera, same as/cross to the agent's
 
 CONTROL_TIMESTEP = 0.025  # dm_control walker: 10 physics steps of 0.0025 s
 ACTION_REPEAT = 2  # Dreamer / GenRL on DMC

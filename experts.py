@@ -13,9 +13,10 @@ Outputs (committed, small, actor only, float16):
   experts/history/<body>_<task>_<step>.pt  snapshots along training: the learning history D_body replays
 Training state (networks, optimisers, replay; not committed) lives in --ckpt-dir and --resume continues.
 A compact copy of each task (networks and temperature, float16, no replay; committed) goes to
-experts/resume/<body>_<task>.pt: on a machine without --ckpt-dir's state, --resume starts from them with an
-empty replay, which it refills with the current policy (seed_steps transitions) before updating again.
-One file per task, so experts of one body may train in separate processes.
+experts/resume/<body>_<task>.pt: on a machine without --ckpt-dir's state, --resume --replace-committed starts
+from them with an empty replay, which it refills with the current policy (seed_steps transitions) before
+updating again. One file per task, so experts of one body may train in separate processes.
+The committed files are never overwritten by a run that was not given --replace-committed (committed_files).
 """
 import argparse
 import csv
@@ -28,7 +29,9 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
+import collect
 import envs
+import rundir
 from sac import Actor, Critic, Replay, copy_member, sac_update, select_tasks
 
 EXPERT_DIR = os.path.join(os.path.dirname(os.path.abspath(__file__)), "experts")
@@ -65,7 +68,7 @@ def save_actor_member(actor, member, body, task, path, step, score=None):
     """Write one task's actor, float16, as a 1-member Actor state dict (with its --eval score if known)."""
     state = {k: v[member : member + 1].detach().half() for k, v in actor.state_dict().items()}
     meta = {"body": body, "task": task, "step": step, "hidden": actor.net[0].w.shape[2], "score": score}
-    _atomic_save({"actor": state, **meta}, path)
+    collect.atomic_write(path, lambda f: torch.save({"actor": state, **meta}, f))
 
 
 def keep_best(actor, body, tasks, step, episodes):
@@ -77,20 +80,13 @@ def keep_best(actor, body, tasks, step, episodes):
     returns = np.mean([episode_returns(actor, env_list, 1000 + k) for k in range(episodes)], 0)
     for k, task in enumerate(tasks):
         score, final = float(envs.normalized_score(task, returns[k])), expert_path(body, task)
-        saved = torch.load(final) if os.path.exists(final) else {"score": -np.inf}
+        saved = collect.load_checkpoint(final) if os.path.exists(final) else {"score": -np.inf}
         best = saved.get("score")
         if best is None:  # a final written before scores were stored: score it once, and store the score
             best = float(envs.normalized_score(task, evaluate(body, task, episodes).mean()))
-            _atomic_save({**saved, "score": best}, final)
+            collect.atomic_write(final, lambda f: torch.save({**saved, "score": best}, f))
         if score > best:
             save_actor_member(actor, k, body, task, final, step, score)
-
-
-def _atomic_save(obj, path):
-    os.makedirs(os.path.dirname(path), exist_ok=True)
-    tmp = path + ".tmp"
-    torch.save(obj, tmp)
-    os.replace(tmp, path)
 
 
 def history_steps(body, task):
@@ -108,7 +104,7 @@ def load_expert(body, task, step=None):
     path = expert_path(body, task, step)
     if not os.path.exists(path):
         raise FileNotFoundError(f"no expert weights at {path}: train them with `python experts.py --body {body} --tasks {task}`")
-    saved = torch.load(path, map_location="cpu")
+    saved = collect.load_checkpoint(path)
     w0, w_last = saved["actor"]["net.0.w"], saved["actor"]["net.4.w"]
     actor = Actor(1, w0.shape[1], w_last.shape[2] // 2, saved["hidden"])
     actor.load_state_dict({k: v.float() for k, v in saved["actor"].items()})
@@ -173,13 +169,20 @@ def compact_path(body, task):
     return os.path.join(EXPERT_DIR, "resume", f"{body}_{task}.pt")
 
 
+def committed_files(body, tasks):
+    """The files under experts/ that training `tasks` of `body` may overwrite and that exist already."""
+    paths = [p for task in tasks for p in (expert_path(body, task), compact_path(body, task))]
+    paths += [expert_path(body, task, step) for task in tasks for step in history_steps(body, task)]
+    return [p for p in paths if os.path.exists(p)]
+
+
 def load_compact(body, tasks):
     """The compact states of `tasks` stacked into one ensemble's state dicts (module docstring)."""
     parts = []
     for task in tasks:
         if not os.path.exists(compact_path(body, task)):
-            raise FileNotFoundError(f"no compact state at {compact_path(body, task)}: train that expert from scratch with --ckpt-dir and without --resume")
-        parts.append(torch.load(compact_path(body, task), map_location="cpu", weights_only=False))
+            raise FileNotFoundError(f"no compact state at {compact_path(body, task)}: leave {task} out of --tasks, or train it from scratch without --resume")
+        parts.append(collect.load_checkpoint(compact_path(body, task)))
     state = {"step": min(p["step"] for p in parts), "log_alpha": torch.stack([p["log_alpha"] for p in parts]),
              "actor": {k: torch.cat([p["actor"][k] for p in parts]) for k in parts[0]["actor"]}}
     for name in ("critic", "critic_target"):  # each file holds [Q1, Q2] of its task; the ensemble wants Q1s, then Q2s
@@ -187,8 +190,18 @@ def load_compact(body, tasks):
     return state
 
 
-def train(body, tasks, cfg, ckpt_dir, resume, warm_start=()):
-    """SAC for all `tasks` of `body` in lockstep (module docstring)."""
+def train(body, tasks, cfg, ckpt_dir, resume, warm_start=(), replace_committed=False):
+    """SAC for all `tasks` of `body` in lockstep (module docstring). Refuses, before anything is written, to overwrite
+    committed files under experts/ unless replace_committed."""
+    rundir.check_flags(cfg)
+    ckpt = os.path.join(ckpt_dir, f"{body}.pt")
+    if resume and not os.path.exists(ckpt) and not replace_committed:
+        raise ValueError(f"--resume: no training state at {ckpt} (--ckpt-dir); to go on from the committed {compact_path(body, '<task>')} "
+                         f"instead, add --replace-committed: the run then replaces the committed {body} experts")
+    existing = committed_files(body, tasks)
+    if existing and not replace_committed:
+        raise ValueError(f"{existing[0]} and {len(existing) - 1} more committed files of the {body} {'/'.join(tasks)} experts exist: "
+                         f"this run would overwrite them; pass --replace-committed to let it")
     torch.set_num_threads(1)
     n = len(tasks)
     env_list = [envs.make_env(body, task, seed=cfg.seed + 100 * k) for k, task in enumerate(tasks)]
@@ -209,9 +222,12 @@ def train(body, tasks, cfg, ckpt_dir, resume, warm_start=()):
     target_entropy = -float(action_dim)  # SAC: -|A|
     replay = Replay(n, cfg.steps, obs_dim, action_dim)
     step, learn_from = 0, cfg.seed_steps
-    ckpt = os.path.join(ckpt_dir, f"{body}.pt")
-    if resume and not os.path.exists(ckpt) and os.path.exists(compact_path(body, tasks[0])):
-        state = load_compact(body, tasks)
+    compact = resume and not os.path.exists(ckpt)  # allowed above only with replace_committed
+    if resume:
+        state = load_compact(body, tasks) if compact else collect.load_checkpoint(ckpt)
+        if state["step"] > cfg.steps:
+            raise ValueError(f"--steps {cfg.steps} is below step {state['step']} of the state resumed: pass --steps {state['step']} or more")
+    if compact:
         for name, module in (("actor", actor), ("critic", critic), ("critic_target", critic_target)):
             module.load_state_dict({k: v.float() for k, v in state[name].items()})
         with torch.no_grad():
@@ -219,8 +235,7 @@ def train(body, tasks, cfg, ckpt_dir, resume, warm_start=()):
         step = state["step"]
         learn_from = step + cfg.seed_steps  # refill the replay with the current policy first
         print(f"resumed the compact experts/resume/{body}_<task>.pt at step {step}: replay and optimisers start empty")
-    elif resume and os.path.exists(ckpt):
-        state = torch.load(ckpt, map_location="cpu", weights_only=False)
+    elif resume:
         changed = [k for k in LEARNING_FIELDS if state["config"][k] != getattr(cfg, k)]
         if changed or not set(tasks) <= set(state["tasks"]):
             raise ValueError(f"{ckpt} was trained with other {', '.join(changed) or 'tasks: ' + ' '.join(state['tasks'])}; pass the same flags or delete it")
@@ -238,29 +253,29 @@ def train(body, tasks, cfg, ckpt_dir, resume, warm_start=()):
             log_alpha.copy_(state["log_alpha"])
         replay.size = state["replay_size"]
         for key in ("obs", "next_obs", "action", "reward"):
-            getattr(replay, key)[:, : replay.size] = state["replay"][key]
-        step, rng = state["step"], state["rng"]
+            getattr(replay, key)[:, : replay.size] = state["replay"][key].numpy()
+        step, rng = state["step"], collect.generator(state["rng"])
         torch.set_rng_state(state["torch_rng"])
         print(f"resumed {ckpt} at step {step}")
     if warm_start:
         copy_member(warm_start, tasks, actor, critic, critic_target, log_alpha, optims)
 
-    def save_checkpoint():
-        _atomic_save(
-            {
-                "config": asdict(cfg), "tasks": list(tasks), "step": step, "rng": rng, "torch_rng": torch.get_rng_state(),
-                "actor": actor.state_dict(), "critic": critic.state_dict(), "critic_target": critic_target.state_dict(),
-                "log_alpha": log_alpha.detach(), "replay_size": replay.size,
-                "replay": {k: getattr(replay, k)[:, : replay.size] for k in ("obs", "next_obs", "action", "reward")},
-                **{"optim_" + k: opt.state_dict() for k, opt in optims.items()},
-            },
-            ckpt,
-        )
+    def save_checkpoint():  # what torch.load(weights_only=True) reads: tensors and plain values (the generator as its state)
+        state = {
+            "config": asdict(cfg), "tasks": list(tasks), "step": step, "rng": rng.bit_generator.state, "torch_rng": torch.get_rng_state(),
+            "actor": actor.state_dict(), "critic": critic.state_dict(), "critic_target": critic_target.state_dict(),
+            "log_alpha": log_alpha.detach(), "replay_size": replay.size,
+            "replay": {k: torch.from_numpy(getattr(replay, k)[:, : replay.size].copy()) for k in ("obs", "next_obs", "action", "reward")},
+            **{"optim_" + k: opt.state_dict() for k, opt in optims.items()},
+        }
+        collect.atomic_write(ckpt, lambda f: torch.save(state, f))
         member = lambda module, rows: {key: v[rows].half() for key, v in module.state_dict().items()}
         for k, task in enumerate(tasks):
-            _atomic_save({"task": task, "step": step, "actor": member(actor, [k]), "critic": member(critic, [k, k + n]),
-                          "critic_target": member(critic_target, [k, k + n]), "log_alpha": log_alpha.detach()[k].clone()}, compact_path(body, task))
+            compact = {"task": task, "step": step, "actor": member(actor, [k]), "critic": member(critic, [k, k + n]),
+                       "critic_target": member(critic_target, [k, k + n]), "log_alpha": log_alpha.detach()[k].clone()}
+            collect.atomic_write(compact_path(body, task), lambda f: torch.save(compact, f))
 
+    os.makedirs(ckpt_dir, exist_ok=True)
     log_path = os.path.join(ckpt_dir, f"{body}_{'-'.join(tasks)}_log.csv")
     obs = np.stack([env.reset()[0] for env in env_list])
     last_ckpt, t0, losses = time.time(), time.time(), (float("nan"), float("nan"))
@@ -307,6 +322,8 @@ def main():
     parser.add_argument("--tasks", nargs="+", default=list(envs.TASKS), choices=envs.TASKS)
     parser.add_argument("--ckpt-dir", default="runs/experts", help="training state (not committed)")
     parser.add_argument("--resume", action="store_true", help="continue from --ckpt-dir")
+    parser.add_argument("--replace-committed", action="store_true",
+                        help="let this run overwrite the committed files of its experts under experts/ (without --ckpt-dir's state, --resume then starts from experts/resume/)")
     parser.add_argument("--warm-start", nargs="+", default=[], metavar="DST=SRC",
                         help="restart expert DST from expert SRC's networks (copy_member); pass it once, later --resume runs without it")
     parser.add_argument("--eval", action="store_true", help="score the committed final experts: 10 episodes each")
@@ -315,6 +332,8 @@ def main():
     for field, value in asdict(ExpertConfig()).items():
         parser.add_argument("--" + field.replace("_", "-"), type=type(value), default=value)
     args = parser.parse_args()
+    cfg = ExpertConfig(**{f: getattr(args, f) for f in asdict(ExpertConfig())})
+    rundir.check_flags(cfg)
     torch.set_num_threads(1)  # small MLPs: one thread is fastest, and far faster when the cores are shared (train.py)
     if args.bounds:
         print("| body | task | random return (mean +- std of 10) |\n|---|---|---|")
@@ -327,8 +346,8 @@ def main():
         for body in [args.body] if args.body else envs.BODIES:
             for task in args.tasks:
                 for step in tqdm(history_steps(body, task), desc=f"{body} {task} snapshots"):
-                    keep_best(load_expert(body, task, step), body, [task], step, args.final_episodes)
-                saved = torch.load(expert_path(body, task))
+                    keep_best(load_expert(body, task, step), body, [task], step, cfg.final_episodes)
+                saved = collect.load_checkpoint(expert_path(body, task))
                 print(f"{body} {task}: final = step {saved['step']}, score {saved['score']:.1f}")
         return
     if args.eval:
@@ -337,7 +356,7 @@ def main():
         for body in bodies:
             for task in args.tasks:
                 returns = evaluate(body, task)
-                step = torch.load(expert_path(body, task), map_location="cpu")["step"]
+                step = collect.load_checkpoint(expert_path(body, task))["step"]
                 jump = ""
                 if task == "jump":
                     airborne, takeoffs, peak, upright = jump_stats(body)
@@ -346,9 +365,7 @@ def main():
         return
     if args.body is None:
         parser.error("--body is required to train (or pass --eval)")
-    cfg = ExpertConfig(**{f: getattr(args, f) for f in asdict(ExpertConfig())})
-    os.makedirs(args.ckpt_dir, exist_ok=True)
-    train(args.body, args.tasks, cfg, args.ckpt_dir, args.resume, args.warm_start)
+    train(args.body, args.tasks, cfg, args.ckpt_dir, args.resume, args.warm_start, args.replace_committed)
 
 
 if __name__ == "__main__":

@@ -25,13 +25,13 @@ Choices where the paper is silent (README, "Deviations"):
   (the features are of 8-frame windows, so neighbouring frames are alike; the random offset keeps a
   fixed stride from aliasing with a gait).
 
-    python imitate.py --demo stickman_run [--view side|diagonal] [--run runs/<name>] [--finetune]
-    python imitate.py --table [--run runs/<name>]
+    python imitate.py --demo stickman_run [--view side|diagonal] [--run runs/<name> | --env walker|stickman] [--preset P] [--finetune]
+    python imitate.py --table [--run runs/<name>]        (tables.py)
+Missing demos of the one body x task imitated are collected first (collect.py, the run's preset and data folder).
 """
 import argparse
 import copy
 import dataclasses
-import json
 import os
 import time
 
@@ -46,10 +46,10 @@ import envs
 import evaluate
 import ot_reward
 import policy
+import rundir
+import tables
 import train
 from video_encoder import check_same_encoder
-
-SETTINGS = ("SE-SV", "SE-CV", "CE-SV", "CE-CV")  # Sec. 5: same/cross embodiment x same/cross viewpoint
 
 
 @dataclasses.dataclass
@@ -72,7 +72,7 @@ class ImitateConfig:
 
 
 PRESETS = {
-    "smoke": dict(steps=3, starts=8, seeds=2, eval_steps=10, demo_stride=1),
+    "smoke": dict(steps=3, starts=8, seeds=2, eval_steps=10, demo_stride=1, critic_warmup=1),
     "cpu": dict(),
     "paper": dict(steps=2000, starts=256, demo_stride=1),
 }
@@ -85,15 +85,15 @@ def setting(agent_body, demo_body, view):
     return ("SE" if demo_body == agent_body else "CE") + "-" + ("SV" if view == "side" else "CV")
 
 
-def demo_folder(data, demo, view):
-    """data/demos/<demo>_<view>; an unknown demo lists the available ones."""
-    folder = os.path.join(data, "demos", f"{demo}_{view}")
-    if not os.path.isdir(folder):
-        root = os.path.join(data, "demos")
-        have = sorted({n.rsplit("_", 1)[0] for n in os.listdir(root)}) if os.path.isdir(root) else []
-        hint = f"available: {', '.join(have)}" if have else "none collected yet: run `python collect.py --demos`"
-        raise ValueError(f"unknown demo {demo!r} with view {view!r} (no {folder}); {hint}")
-    return folder
+def demo_folder(cfgs, demo, view):
+    """<data>/demos/<demo>_<view> of the run's data folder, its episodes collected first (both views of that body and
+    task, the run's preset) where any is missing; an unknown demo lists the valid names."""
+    tc = cfgs["train"]
+    body, _, task = demo.rpartition("_")
+    if body not in envs.BODIES or task not in envs.TASKS:
+        raise ValueError(f"unknown demo {demo!r}: valid demos are {', '.join(b + '_' + t for b in envs.BODIES for t in envs.TASKS)}")
+    collect.collect_demos(collect.CollectConfig(**collect.PRESETS[tc.preset]), tc.data, os.cpu_count(), tc.encoder, [(body, task)])
+    return os.path.join(tc.data, "demos", f"{demo}_{view}")
 
 
 def body_segments(cfgs):
@@ -149,6 +149,22 @@ def multi_goal_loss(models, start, goal, body_goals, bc, cfgs):  # Eq. 4 during 
     return a_loss, c_loss, metrics
 
 
+def checked_step(opt, loss, what, seed, update, clip=None):
+    """opt.step() on `loss`, unless the loss or a gradient is not finite or the loss diverged (train.DIVERGED): then a
+    one-line error, and nothing more is appended to results.jsonl."""
+    opt.zero_grad(set_to_none=True)
+    bad = "" if abs(loss.item()) < train.DIVERGED else f"is {loss.item():.3g}"  # False for nan and inf too
+    if not bad:
+        loss.backward()
+        params = [p for group in opt.param_groups for p in group["params"]]
+        if clip:
+            torch.nn.utils.clip_grad_norm_(params, clip)  # as in phase 1
+        bad = "" if all(torch.isfinite(p.grad).all() for p in params if p.grad is not None) else "has a non-finite gradient"
+    if bad:
+        raise ValueError(f"GIIL-FT seed {seed}: {what} {bad} at update {update}: stopped (a learning rate too high? --goal-lr, --critic-lr)")
+    opt.step()
+
+
 def finetune_goal(models, cfgs, ic, ot_cfg, p_goal, demo_p, seed, device, optim_states=None):
     """GIIL-FT: optimise g (and psi by L_MG) for ic.steps updates from the zero-shot goal q(s | p_goal), p_goal (D,) the
     first demo's last feature. Returns the final g (F,). optim_states: the phase-1 checkpoint's optimiser states, from
@@ -200,18 +216,13 @@ def finetune_goal(models, cfgs, ic, ot_cfg, p_goal, demo_p, seed, device, optim_
         goal = current_goal()
         gi_loss, ot_loss, metrics = goal_inference_loss(models, critic_ot, slow_ot, goal, start, demo, cfgs, ot_cfg, offsets, ic.value_only)
         warming_up = step < ic.critic_warmup
-        for opt, loss in [(opt_ot, ot_loss)] if warming_up else [(opt_goal, gi_loss), (opt_ot, ot_loss)]:
-            opt.zero_grad(set_to_none=True)
-            loss.backward()
-            opt.step()
+        for opt, loss, what in [(opt_ot, ot_loss, "V_ot loss")] if warming_up else [(opt_goal, gi_loss, "Eq. 5 L_GI"), (opt_ot, ot_loss, "V_ot loss")]:
+            checked_step(opt, loss, what, seed, step)
         policy.ema_update(slow_ot, critic_ot, ac.slow_critic_rate)
         if ic.finetune_policy:
             a_loss, c_loss, _ = multi_goal_loss(models, body_start, goal, body_goals, bc, cfgs)
-            for opt, loss in ((opt_actor, a_loss), (opt_critic, c_loss)):
-                opt.zero_grad(set_to_none=True)
-                loss.backward()
-                torch.nn.utils.clip_grad_norm_(opt.param_groups[0]["params"], ac.grad_clip)  # as in phase 1
-                opt.step()
+            for opt, loss, what in ((opt_actor, a_loss, "Eq. 4 actor loss"), (opt_critic, c_loss, "Eq. 4 critic loss")):
+                checked_step(opt, loss, what, seed, step, ac.grad_clip)
             policy.ema_update(models["slow_critic"], models["critic"], ac.slow_critic_rate)
         bar.set_postfix(ot=f"{metrics['ot_reward']:.4f}")
     with torch.no_grad():
@@ -231,15 +242,20 @@ def write_video(path, demo_frames, agent_frames):
 def imitate(run_dir, demo, view, finetune, ic, zero_shot=True):
     """GIIL-ZS (unless not zero_shot) and GIIL-FT (with finetune) for one demo folder; appends each evaluation
     to runs/<name>/results.jsonl and returns the rows."""
+    rundir.check_flags(ic)
+    if finetune and ic.critic_warmup >= ic.steps:
+        raise ValueError(f"--critic-warmup {ic.critic_warmup} is not below --steps {ic.steps}: the goal would never move (GIIL-FT = GIIL-ZS)")
     device = "cuda" if torch.cuda.is_available() else "cpu"
     cfgs, models, ckpt = train.load_run(run_dir, device)
     tc = cfgs["train"]
     torch.set_num_threads(tc.threads)
-    folder = demo_folder(tc.data, demo, view)
+    folder = demo_folder(cfgs, demo, view)
     demo_body, task = demo.rsplit("_", 1)
-    demos = collect.load_folder(folder, ("pixels", "p"))
-    for k, d in enumerate(demos):
-        check_same_encoder(ckpt["encoder"], d["encoder"], os.path.join(folder, f"{k:02d}.npz"))
+    demos = collect.load_folder(folder, ("pixels", "p"))  # one collection: every demo of one length
+    if finetune and len(demos[0]["p"]) < cfgs["ac"].horizon + 2:
+        raise ValueError(f"{folder}: demos of {len(demos[0]['p'])} steps are too short for imagined segments of {cfgs['ac'].horizon}; collect longer ones")
+    for d in demos:
+        check_same_encoder(ckpt["encoder"], d["encoder"], d["path"])
     demo_returns = [round(d["return"], 3) for d in demos]  # identifies this D_demo: --table ignores rows of older demos
     where = setting(tc.env, demo_body, view)
     ot_cfg = ot_reward.OTConfig(**ot_reward.PRESETS[ic.preset])
@@ -259,9 +275,8 @@ def imitate(run_dir, demo, view, finetune, ic, zero_shot=True):
                 write_video(os.path.join(out_dir, f"{demo}_{view}_{method}_s{seed}.mp4"), video_demo, frames[0])
         row = {"agent": tc.env, "demo": demo, "view": view, "task": task, "setting": where, "method": method, "seed": seed,
                "score": float(np.mean(scores)), "episode_scores": scores, "time": round(time.time() - t0, 1), "demo_returns": demo_returns,
-               "config": result_config(ic, method)}
-        with open(results_path, "a") as f:
-            f.write(json.dumps(row) + "\n")
+               "config": tables.result_config(ic, method)}
+        rundir.append_jsonl(results_path, row)
         rows.append(row)
 
     with torch.no_grad():
@@ -282,125 +297,38 @@ def imitate(run_dir, demo, view, finetune, ic, zero_shot=True):
         scores = [r["score"] for r in rows if r["method"] == method]
         if not scores:
             continue
-        print(f"{method} {tc.env} imitating {demo} ({view} view, {where}): normalised score {np.mean(scores):.1f} +- {stderr(scores):.1f} over {len(scores)} {'demos' if method == 'GIIL-ZS' else 'seeds'}")
+        print(f"{method} {tc.env} imitating {demo} ({view} view, {where}): normalised score {np.mean(scores):.1f} +- {evaluate.stderr(scores):.1f} over {len(scores)} {'demos' if method == 'GIIL-ZS' else 'seeds'}")
     print(f"appended to {results_path}; videos in {out_dir}")
     return rows
-
-
-def stderr(values):
-    return float(np.std(values, ddof=1) / np.sqrt(len(values))) if len(values) > 1 else 0.0
-
-
-# The paper's normalised scores (GIIL-ZS, GIIL-FT) for comparison: Tables 1-2 ("all") and 4-11 (per task)
-PAPER = {
-    "walker": {"all": [(42.52, 68.10), (32.97, 64.13), (19.47, 60.76), (18.09, 45.53)],
-               "stand": [(71.01, 100.57), (63.79, 97.37), (47.79, 49.45), (40.95, 49.90)],
-               "walk": [(16.68, 25.70), (19.92, 27.31), (12.68, 92.11), (10.17, 36.70)],
-               "run": [(55.92, 88.96), (12.36, 81.61), (6.40, 76.27), (4.24, 71.25)],
-               "jump": [(26.48, 57.19), (35.81, 50.24), (11.03, 25.21), (17.01, 24.29)]},
-    "stickman": {"all": [(68.27, 68.56), (61.26, 72.66), (54.89, 61.77), (38.37, 58.99)],
-                 "stand": [(96.96, 98.51), (97.59, 99.75), (66.48, 100.83), (62.68, 100.99)],
-                 "walk": [(59.98, 91.00), (59.38, 94.33), (46.77, 22.12), (20.79, 17.57)],
-                 "run": [(80.65, 58.65), (51.70, 59.25), (69.71, 69.49), (37.93, 61.68)],
-                 "jump": [(35.50, 26.07), (36.37, 37.30), (36.59, 54.64), (32.07, 55.73)]},
-}
-
-
-def demo_of(agent, task, where):
-    """(demo name, view) of a setting: SE/CE picks the demonstrator's body, SV/CV its camera."""
-    other = [b for b in envs.BODIES if b != agent][0]
-    return f"{agent if where.startswith('SE') else other}_{task}", "side" if where.endswith("SV") else "diagonal"
-
-
-def load_results(run_dir):
-    """The latest row per (demo, view, method, seed, demos' returns, settings) of runs/<name>/results.jsonl: a rerun
-    replaces its own earlier result, never one made with other demos or settings."""
-    path = os.path.join(run_dir, "results.jsonl")
-    rows = {}
-    if os.path.exists(path):
-        with open(path) as f:
-            for line in f:
-                r = json.loads(line)
-                rows[(r["demo"], r["view"], r["method"], r["seed"], json.dumps(r.get("demo_returns")), json.dumps(r.get("config")))] = r
-    return list(rows.values())
-
-
-def result_config(ic, method):
-    """The ImitateConfig fields a result depends on: evaluation for GIIL-ZS, and finetuning too for GIIL-FT."""
-    fields = dataclasses.asdict(ic)
-    keep = ("eval_episodes", "eval_steps") if method == "GIIL-ZS" else tuple(k for k in fields if k not in ("seeds", "video"))
-    return {k: fields[k] for k in keep}
-
-
-def table(run_dir, ic, settings=SETTINGS, demos_per_cell=10):
-    """Every setting x task for this agent, GIIL-ZS and GIIL-FT; runs only the cells missing from results.jsonl.
-    `settings` limits which settings run now (the tables show every finished cell). A row counts only if it was
-    made with the demos now on disk (their returns match) and with the settings asked
-    for (result_config): regenerating D_demo or changing a setting makes the cells run again instead of mixing
-    old and new results."""
-    cfgs = train.load_run(run_dir)[0]
-    agent, current = cfgs["train"].env, []
-    for task in envs.TASKS:
-        for where in SETTINGS:
-            demo, view = demo_of(agent, task, where)
-            returns = [round(e["return"], 3) for e in collect.load_folder(demo_folder(cfgs["train"].data, demo, view), ())]
-            cell = lambda: [r for r in load_results(run_dir) if r["demo"] == demo and r["view"] == view and r.get("demo_returns") == returns
-                            and r.get("config") == result_config(ic, r["method"])]
-            count = lambda m: sum(r["method"] == m for r in cell())
-            zs, ft = count("GIIL-ZS") < demos_per_cell, count("GIIL-FT") < ic.seeds
-            if (zs or ft) and where in settings:  # a setting left out runs nothing; its finished cells still count
-                imitate(run_dir, demo, view, ft, ic, zero_shot=zs)
-            current += cell()
-    text = markdown_tables(agent, current)
-    path = os.path.join(run_dir, "tables.md")
-    with open(path, "w") as f:
-        f.write(text)
-    print(text)
-    print(f"wrote {path}")
-
-
-def markdown_tables(agent, rows):
-    """Tables 1/2 (all tasks) and 4-11 (per task) for this agent: ours next to the paper's, mean +- s.e."""
-    def cell(scores):
-        return f"{np.mean(scores):.1f} +- {stderr(scores):.1f}" if scores else "-"
-
-    out = []
-    for task in ("all",) + envs.TASKS:
-        title = f"{agent} agent, {'all tasks (as Table 1/2)' if task == 'all' else task}: normalised score, mean +- s.e."
-        out += [f"### {title}", "", "| setting | GIIL-ZS (ours) | GIIL-FT (ours) | GIIL-ZS (paper) | GIIL-FT (paper) |", "|---|---|---|---|---|"]
-        pick = lambda m, ws: [r["score"] for r in rows if r["method"] == m and r["setting"] in ws and (task == "all" or r["task"] == task)]
-        for k, where in enumerate(SETTINGS):
-            zs, ft = PAPER[agent][task][k]
-            out.append(f"| {where} | {cell(pick('GIIL-ZS', [where]))} | {cell(pick('GIIL-FT', [where]))} | {zs:.2f} | {ft:.2f} |")
-        for name, ws in (("Average", SETTINGS), ("Average w/o SE-SV", SETTINGS[1:])):
-            paper = [np.mean([PAPER[agent][task][SETTINGS.index(w)][m] for w in ws]) for m in (0, 1)]
-            out.append(f"| {name} | {cell(pick('GIIL-ZS', ws))} | {cell(pick('GIIL-FT', ws))} | {paper[0]:.2f} | {paper[1]:.2f} |")
-        out.append("")
-    return "\n".join(out)
 
 
 def main():
     parser = argparse.ArgumentParser(description="Phase 2: infer the goal from a demo (GIIL-ZS, --finetune: GIIL-FT), or --table.")
     parser.add_argument("--demo", help="<demonstrator body>_<task>, e.g. stickman_run")
     parser.add_argument("--view", default="side", choices=envs.VIEWS, help="camera of the demo")
-    parser.add_argument("--run", default="runs/walker_state_cpu_s0", help="the phase-1 run (train.py) whose agent imitates")
+    parser.add_argument("--run", help="the phase-1 run (train.py) whose agent imitates (default: the --env agent's run of this --preset, "
+                        "runs/<env>_<obs>_<preset>_s0)")
+    parser.add_argument("--env", choices=envs.BODIES, help="the agent's body, to pick the default --run (default walker)")
     parser.add_argument("--finetune", action="store_true", help="also GIIL-FT: finetune the goal (Eq. 5), 3 seeds")
     parser.add_argument("--table", action="store_true", help="all settings x tasks for this agent; keeps finished cells")
-    parser.add_argument("--settings", default=",".join(SETTINGS), help="with --table: the settings to run now, comma-separated")
+    parser.add_argument("--settings", default=",".join(envs.SETTINGS), help="with --table: the settings to run now, comma-separated")
     for field in dataclasses.fields(ImitateConfig):
         parser.add_argument("--" + field.name.replace("_", "-"), type=type(field.default), default=None,
                             choices=CHOICES.get(field.name), help=f"default {field.default!r}, or the preset's")
     args = parser.parse_args()
     given = {f.name: getattr(args, f.name) for f in dataclasses.fields(ImitateConfig) if getattr(args, f.name) is not None}
     ic = ImitateConfig(**{**PRESETS[given.get("preset", "cpu")], **given})
+    if args.run and args.env:
+        parser.error("--env only picks the default --run: pass one of them")
+    run = args.run or train.default_run_dir(args.env or "walker", ic.preset)
     if args.table:
         settings = args.settings.split(",")
-        unknown = [w for w in settings if w not in SETTINGS]
+        unknown = [w for w in settings if w not in envs.SETTINGS]
         if unknown:
-            parser.error(f"unknown setting(s) {', '.join(unknown)}: choose from {', '.join(SETTINGS)}")
-        table(args.run, ic, settings)
+            parser.error(f"unknown setting(s) {', '.join(unknown)}: choose from {', '.join(envs.SETTINGS)}")
+        tables.table(run, ic, settings)
     elif args.demo:
-        imitate(args.run, args.demo, args.view, args.finetune, ic)
+        imitate(run, args.demo, args.view, args.finetune, ic)
     else:
         parser.error("pass --demo NAME (e.g. stickman_run) or --table")
 

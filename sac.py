@@ -2,7 +2,7 @@
 
 Every network is an *ensemble*: a stack of per-task weights applied with batched matrix products
 (torch.baddbmm), so n tasks cost little more than one in a small-MLP regime dominated by per-call
-overhead ("fused critics"). Each task has its own replay buffer, networks, temperature and
+overhead (fused critics). Each task has its own replay buffer, networks, temperature and
 optimiser state; nothing is shared but the matrix multiply. select_tasks and copy_member edit a
 training state member by member (stopping experts that are done, restarting one from another).
 """
@@ -11,8 +11,15 @@ import math
 import numpy as np
 import torch
 import torch.nn as nn
+import torch.nn.functional as F
 
-from policy import tanh_gaussian_log_prob
+
+def tanh_gaussian_log_prob(u, mean, std):
+    """log pi(tanh(u)) of a tanh-squashed diagonal Gaussian, summed over actions: log N(u; mean, std) minus the tanh
+    Jacobian log(1 - tanh(u)^2), written stably (SAC, Haarnoja et al. 2018, App. C). (..., A) -> (...). The expert
+    stack keeps its own copy: it never imports GIIL's method files (policy.py has the same function)."""
+    log_prob = (-0.5 * ((u - mean) / std) ** 2 - std.log() - 0.5 * math.log(2 * math.pi)).sum(-1)
+    return log_prob - (2 * (math.log(2) - u - F.softplus(-2 * u))).sum(-1)
 
 
 class EnsembleLinear(nn.Module):

@@ -28,6 +28,7 @@ import envs
 import evaluate
 import goal_vae
 import policy
+import rundir
 import world_model
 from video_encoder import check_same_encoder, load_encoder
 
@@ -50,7 +51,7 @@ class TrainConfig:
 
 
 TRAIN_PRESETS = {
-    "smoke": dict(steps=6, policy_start=2, holdout_every=3, eval_episodes=1, eval_steps=10, log_every=2, checkpoint_every=3),
+    "smoke": dict(steps=6, policy_start=2, holdout_every=3, eval_episodes=1, eval_steps=10, log_every=2, checkpoint_every=3, data=collect.DATA["smoke"]),
     "cpu": dict(),
     "paper": dict(steps=100_000, policy_start=5_000, log_every=1000, checkpoint_every=5000),
 }
@@ -64,6 +65,9 @@ COMPONENTS = {
 }
 # fields that may differ when a run is resumed: they do not change what the models are
 RESUMABLE = {"steps", "log_every", "checkpoint_every", "eval_episodes", "eval_steps", "data", "threads"}
+DIVERGED = 1e10  # |loss| above this is divergence (ours: the smoke preset's losses are below 100; a learning rate of 1e3 on
+# the goal VAE, distance or critic gave losses of 1e20 and more within 4 updates)
+LR_FLAGS = {"world_model": ("wm", "lr"), "goal_vae": ("goal", "lr"), "dist_net": ("dist", "lr"), "actor": ("ac", "actor_lr"), "critic": ("ac", "critic_lr")}
 
 
 def add_config_flags(parser):
@@ -83,7 +87,14 @@ def resolve_configs(args, preset):
         cls, presets, _ = COMPONENTS[name]
         given = {f.name: getattr(args, f"{name}.{f.name}") for f in dataclasses.fields(cls)}
         out[name] = cls(**{**presets[preset], **{k: v for k, v in given.items() if v is not None}})
+    out["train"].preset = preset  # the preset these sizes come from, whichever way it was passed
     return out
+
+
+def default_run_dir(env, preset, seed=0, obs=None):
+    """runs/<env>_<obs>_<preset>_s<seed> (obs: the preset's unless given): where train.py writes and imitate.py reads."""
+    obs = obs or world_model.PRESETS[preset].get("obs", world_model.WorldModelConfig.obs)
+    return os.path.join("runs", f"{env}_{obs}_{preset}_s{seed}")
 
 
 class Segments:
@@ -160,18 +171,12 @@ def load_run(run_dir, device="cpu"):
     path = os.path.join(run_dir, "checkpoint.pt")
     if not os.path.exists(path):
         raise FileNotFoundError(f"no checkpoint at {path}: train one with `python train.py --env walker` (runs/<env>_<obs>_<preset>_s<seed>)")
-    ckpt = torch.load(path, map_location=device, weights_only=False)
+    ckpt = collect.load_checkpoint(path, device)
     cfgs = {name: COMPONENTS[name][0](**fields) for name, fields in ckpt["config"].items()}
     models = build_models(cfgs, ckpt["obs_shape"], ckpt["action_dim"], ckpt["p_dim"], device)
     for name, model in models.items():
         model.load_state_dict(ckpt["models"][name])
     return cfgs, models, ckpt
-
-
-def atomic_save(obj, path):
-    tmp = path + ".tmp"
-    torch.save(obj, tmp)
-    os.replace(tmp, path)
 
 
 def report_goal_reaching(run_dir, models, cfgs, device):
@@ -186,6 +191,17 @@ def report_goal_reaching(run_dir, models, cfgs, device):
 
 
 def train(cfgs, run_dir, resume):
+    """Phase 1 into run_dir, which no other process writes meanwhile (rundir.lock); flags are checked first."""
+    for name, config in cfgs.items():
+        rundir.check_flags(config, COMPONENTS[name][2])
+    ckpt_path = os.path.join(run_dir, "checkpoint.pt")
+    if resume and not os.path.exists(ckpt_path):
+        raise ValueError(f"--resume: no checkpoint at {ckpt_path}; drop --resume to start a new run there")
+    with rundir.lock(run_dir):
+        return pretrain(cfgs, run_dir, resume)
+
+
+def pretrain(cfgs, run_dir, resume):
     tc, wc = cfgs["train"], cfgs["wm"]
     device = "cuda" if torch.cuda.is_available() else "cpu"
     torch.set_num_threads(tc.threads)
@@ -193,12 +209,12 @@ def train(cfgs, run_dir, resume):
     torch.manual_seed(tc.seed)
     rng = np.random.default_rng(tc.seed)
     folder = os.path.join(tc.data, tc.env)
-    if not os.path.isdir(folder) or not os.listdir(folder):
-        print(f"D_body missing at {folder}: collecting it (python collect.py --env {tc.env} --preset {tc.preset})")
+    if not os.path.exists(os.path.join(folder, collect.COMPLETE)):  # missing, or a collection killed half-way
+        print(f"D_body at {folder} is not complete: collecting what is missing (python collect.py --env {tc.env} --preset {tc.preset})")
         collect.collect_body(tc.env, collect.CollectConfig(**collect.PRESETS[tc.preset]), tc.data, os.cpu_count(), tc.encoder)
     if not all(os.path.isdir(os.path.join(tc.data, "demos", f"{tc.env}_{task}_side")) for task in envs.TASKS):
         print(f"{tc.env}'s own demos (the goals of the goal-reaching benchmark, evaluate.py) missing: collecting them")
-        collect.collect_demos(collect.CollectConfig(**collect.PRESETS[tc.preset]), tc.data, os.cpu_count(), tc.encoder, bodies=(tc.env,))
+        collect.collect_demos(collect.CollectConfig(**collect.PRESETS[tc.preset]), tc.data, os.cpu_count(), tc.encoder, demos=[(tc.env, task) for task in envs.TASKS])
     encoder = load_encoder(tc.encoder)
     episodes = collect.load_folder(folder, (wc.obs, "action", "is_first", "p"), encoder=encoder.name)
     held_out = episodes[:: tc.holdout_every]
@@ -223,33 +239,44 @@ def train(cfgs, run_dir, resume):
     step = 0
     if os.path.exists(ckpt_path):
         if not resume:
-            raise SystemExit(f"{ckpt_path} exists: pass --resume to continue that run, or another --seed for a new one")
-        ckpt = torch.load(ckpt_path, map_location=device, weights_only=False)
+            raise ValueError(f"{ckpt_path} exists: pass --resume to continue that run, or another --seed for a new one")
+        ckpt = collect.load_checkpoint(ckpt_path, device)
         changed = [f"{n}.{k}" for n in config for k in config[n] if k not in RESUMABLE and ckpt["config"][n].get(k) != config[n][k]]
         if changed:
-            raise SystemExit(f"{ckpt_path} was trained with other {', '.join(changed)}: pass the same flags to resume, or start a new run")
+            raise ValueError(f"{ckpt_path} was trained with other {', '.join(changed)}: pass the same flags to resume, or start a new run")
+        if tc.steps < ckpt["step"]:
+            raise ValueError(f"--steps {tc.steps} is below the update {ckpt['step']} of {ckpt_path}: pass --steps {ckpt['step']} or more")
         check_same_encoder(ckpt["encoder"], encoder.name, ckpt_path)
         for name, model in models.items():
             model.load_state_dict(ckpt["models"][name])
         for name, opt in optims.items():
             opt.load_state_dict(ckpt["optims"][name])
-        step, rng = ckpt["step"], ckpt["rng"]
+        step, rng = ckpt["step"], collect.generator(ckpt["rng"])
         torch.set_rng_state(ckpt["torch_rng"])
         print(f"resumed {ckpt_path} at update {step}")
-    os.makedirs(run_dir, exist_ok=True)
+    rundir.trim_jsonl(os.path.join(run_dir, "metrics.jsonl"), step)  # rows a killed run logged after its checkpoint
 
     def save():
-        atomic_save({"config": config, "step": step, "rng": rng, "torch_rng": torch.get_rng_state(), "encoder": encoder.name,
-                     "obs_shape": obs_shape, "action_dim": action_dim, "p_dim": p_dim,
-                     "models": {k: m.state_dict() for k, m in models.items()}, "optims": {k: o.state_dict() for k, o in optims.items()}}, ckpt_path)
+        state = {"config": config, "step": step, "rng": rng.bit_generator.state, "torch_rng": torch.get_rng_state(), "encoder": encoder.name,
+                 "obs_shape": obs_shape, "action_dim": action_dim, "p_dim": p_dim,
+                 "models": {k: m.state_dict() for k, m in models.items()}, "optims": {k: o.state_dict() for k, o in optims.items()}}
+        collect.atomic_write(ckpt_path, lambda f: torch.save(state, f))
         return step
 
     def apply(name, loss, term):
-        if not torch.isfinite(loss):
-            raise SystemExit(f"{term} is {loss.item()} at update {step}: stopped; the last good checkpoint is {ckpt_path} (update {saved}), untouched")
+        """One optimiser step, unless the loss or its gradient is not finite or the loss diverged: then stop, weights untouched."""
         optims[name].zero_grad(set_to_none=True)
-        loss.backward()
-        torch.nn.utils.clip_grad_norm_(models[name].parameters(), clip[name])
+        bad = "" if abs(loss.item()) < DIVERGED else f"is {loss.item():.3g}"  # False for nan and inf too
+        if not bad:
+            loss.backward()
+            norm = torch.nn.utils.clip_grad_norm_(models[name].parameters(), clip[name])
+            bad = "" if torch.isfinite(norm) else f"has a non-finite gradient (norm {norm.item()})"
+        if bad:
+            kept = f"the last good checkpoint is {ckpt_path} (update {saved}), untouched" if os.path.exists(ckpt_path) else \
+                f"no checkpoint was written yet (the first comes at update {tc.checkpoint_every})"
+            component, field = LR_FLAGS[name]
+            raise ValueError(f"{term} {bad} at update {step}: stopped; {kept}. A learning rate too high? "
+                             f"--{COMPONENTS[component][2]}{field.replace('_', '-')} is {getattr(cfgs[component], field)}")
         optims[name].step()
 
     saved, log, t0, metrics = step, open(os.path.join(run_dir, "metrics.jsonl"), "a"), time.time(), {}
@@ -299,8 +326,7 @@ def train(cfgs, run_dir, resume):
             saved = save()
     bar.close()
     imagination = evaluate_imagination(models, cfgs, held_out, device)
-    with open(os.path.join(run_dir, "imagination.json"), "w") as f:
-        json.dump(imagination, f, indent=1)
+    collect.atomic_write(os.path.join(run_dir, "imagination.json"), lambda f: f.write(json.dumps(imagination, indent=1).encode()))
     print(f"held-out D_body: goal decoder's cosine to the true p_t {imagination['posterior_p_cos']:.2f} on posterior states, "
           f"{imagination['open_loop_p_cos']:.2f} on {wc.seq_len - wc.seq_len // 2} open-loop imagined steps (world-model error {imagination['open_loop']:.3f})")
     print("wrote", evaluate.learning_curve(run_dir))
@@ -315,12 +341,18 @@ def main():
     parser.add_argument("--evaluate", action="store_true", help="only the goal-reaching benchmark (evaluate.py) of the trained run")
     parser.add_argument("--obs", dest="wm.obs", choices=("state", "pixels"), default=None, help="world-model input (default: the preset's)")
     parser.add_argument("--run-dir", default=None, help="default runs/<env>_<obs>_<preset>_s<seed>")
+    parser.add_argument("--upgrade-checkpoint", metavar="PATH", help="rewrite a checkpoint of the older pickled format so that it "
+                        "loads weights-only (unpickles it once: only for a file you trust), then exit")
     add_config_flags(parser)
     args = parser.parse_args()
+    if args.upgrade_checkpoint:
+        collect.upgrade_checkpoint(args.upgrade_checkpoint)
+        print(f"rewrote {args.upgrade_checkpoint}: it now loads with torch.load(weights_only=True)")
+        return
     envs._check_name("body", getattr(args, "train.env") or TrainConfig.env, envs.BODIES)
     cfgs = resolve_configs(args, getattr(args, "train.preset") or "cpu")
     tc = cfgs["train"]
-    run_dir = args.run_dir or os.path.join("runs", f"{tc.env}_{cfgs['wm'].obs}_{tc.preset}_s{tc.seed}")
+    run_dir = args.run_dir or default_run_dir(tc.env, tc.preset, tc.seed, cfgs["wm"].obs)
     if args.evaluate:
         device = "cuda" if torch.cuda.is_available() else "cpu"
         run_cfgs, models, _ = load_run(run_dir, device)

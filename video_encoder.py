@@ -60,11 +60,13 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
+import envs
+from envs import BODIES, SETTINGS, TASKS, VIEWS
+
 WINDOW = 8  # k: InternVideo2 in GenRL, 8-frame windows at stride 1 (Mazzaglia et al. 2024)
 SIZE = 64  # renders are 64x64 (envs.py)
 DEFAULT_NAME = "default-v1"  # recorded in every dataset; bump it when anything below changes the features
 DEFAULT_DIM = 512  # as InternVideo2 in GenRL (Mazzaglia et al. 2024); random Fourier features estimate the kernel within ~1/sqrt(DIM)
-BODIES, TASKS, VIEWS = ("walker", "stickman"), ("stand", "walk", "run", "jump"), ("side", "diagonal")
 IMAGENET_MEAN, IMAGENET_STD = (0.485, 0.456, 0.406), (0.229, 0.224, 0.225)  # torchvision's ImageNet statistics
 
 # Colours of our renders (dm_control's materials, lit): both checker colours of the floor have B - R ~ 48
@@ -259,7 +261,6 @@ def check_same_encoder(name_a, name_b, where):
         )
 
 
-SETTINGS = ("SE-SV", "SE-CV", "CE-SV", "CE-CV")  # same/cross embodiment x same/cross viewpoint (Sec. 5)
 DESCRIPTORS = ("last", "mean")  # last: p_T, the input of the zero-shot goal (Sec. 4); mean: the normalised mean of p_t
 
 
@@ -342,8 +343,6 @@ def bench(frames_per_call=None, repeats=3):
     frames_per_call: frames per encoder call, default one episode (envs.EPISODE_STEPS + 1).
     Returns (encoder frames/s, render frames/s).
     """
-    import envs  # MuJoCo is needed only to make the frames
-
     env = envs.make_env("walker", "walk")
     env.reset(seed=0)
     rng = np.random.default_rng(0)

@@ -36,7 +36,7 @@ def test_resume_skips_existing_episodes(data):
     collect.collect_body("walker", SMOKE, data, workers=1)
     after = {n: os.path.getmtime(os.path.join(folder, n)) for n in os.listdir(folder)}
     assert sorted(after) == sorted(before)  # same files, no duplicates, no temporaries
-    assert [n for n in after if after[n] != before[n]] == ["walk_0000.npz"]
+    assert sorted(n for n in after if after[n] != before[n]) == [collect.COMPLETE, "walk_0000.npz"]
 
 
 def test_episodes_are_reproducible(data, tmp_path):
@@ -84,3 +84,17 @@ def test_missing_expert_names_the_command(tmp_path, monkeypatch):
         collect.collect_body("stickman", SMOKE, str(tmp_path), workers=1)
     with pytest.raises(ValueError, match="valid body names are walker, stickman"):
         collect.collect_body("humanoid", SMOKE, str(tmp_path), workers=1)
+
+
+def test_collection_never_replaces_a_written_view(data, tmp_path):
+    """A demo whose side view is on disk and diagonal view is not: only the diagonal file is written."""
+    cfg = collect.CollectConfig(**dict(collect.PRESETS["smoke"], demo_episodes=1))
+    side = tmp_path / "demos" / "walker_run_side" / "00.npz"
+    side.parent.mkdir(parents=True)
+    episode = dict(np.load(os.path.join(data, "walker", "run_0000.npz")))  # any 20-step episode stands in for it
+    collect.save_episode(str(side), episode)
+    before = side.read_bytes()
+    collect.collect_demos(cfg, str(tmp_path), workers=1, demos=[("walker", "run")])
+    assert side.read_bytes() == before
+    assert collect.load_episode(str(tmp_path / "demos" / "walker_run_diagonal" / "00.npz"))["view"] == "diagonal"
+    assert sorted(os.listdir(tmp_path / "demos")) == ["walker_run_diagonal", "walker_run_side"]

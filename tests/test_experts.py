@@ -5,6 +5,7 @@ import pytest
 import torch
 
 import experts
+import sac
 
 TINY = dict(steps=12, seed_steps=4, batch=8, hidden=8, snapshot_every=12, eval_every=10_000, checkpoint_minutes=0.0, final_episodes=1)
 
@@ -18,11 +19,11 @@ def expert_dir(tmp_path, monkeypatch):
 def test_dropped_task_keeps_latest_policy_and_warm_start_copies(expert_dir):
     ckpt_dir = str(expert_dir / "ckpt")
     experts.train("walker", ["stand", "walk", "run"], experts.ExpertConfig(**TINY), ckpt_dir, resume=False)
-    state = torch.load(os.path.join(ckpt_dir, "walker.pt"), weights_only=False)
+    state = torch.load(os.path.join(ckpt_dir, "walker.pt"), weights_only=True)
     assert state["step"] == 12 and state["tasks"] == ["stand", "walk", "run"]
 
     # resume without stand: its final file is its step-12 actor
-    experts.train("walker", ["walk", "run"], experts.ExpertConfig(**TINY), ckpt_dir, resume=True)
+    experts.train("walker", ["walk", "run"], experts.ExpertConfig(**TINY), ckpt_dir, resume=True, replace_committed=True)
     stand = torch.load(experts.expert_path("walker", "stand"))
     assert stand["step"] == 12
     for key, value in stand["actor"].items():
@@ -60,7 +61,7 @@ def test_warm_start_rejects_unknown_task(expert_dir):
 
 def test_compact_state_resumes_tasks_in_any_order(expert_dir):
     experts.train("walker", ["stand", "walk"], experts.ExpertConfig(**TINY), str(expert_dir / "a"), resume=False)
-    full = torch.load(str(expert_dir / "a" / "walker.pt"), weights_only=False)
+    full = torch.load(str(expert_dir / "a" / "walker.pt"), weights_only=True)
     state = experts.load_compact("walker", ["walk", "stand"])  # per-task files, stacked in the order asked
     assert state["step"] == 12
     for key, value in full["actor"].items():
@@ -83,3 +84,22 @@ def test_final_expert_is_the_best_snapshot(expert_dir):
     assert saved["step"] == 200
     evaluated = experts.envs.normalized_score("stand", experts.evaluate("walker", "stand", 1).mean())  # of the float16 copy
     assert saved["score"] == pytest.approx(float(evaluated), abs=0.1)
+
+
+def test_sac_log_prob_matches_torch_distributions():
+    torch.manual_seed(0)
+    mean, std = torch.randn(5, 3), torch.rand(5, 3) + 0.1
+    u = mean + std * torch.randn(5, 3)
+    squashed = torch.distributions.TransformedDistribution(torch.distributions.Normal(mean, std), torch.distributions.TanhTransform())
+    expected = squashed.log_prob(torch.tanh(u)).sum(-1)
+    assert torch.allclose(sac.tanh_gaussian_log_prob(u, mean, std), expected, atol=1e-4)
+
+
+def test_data_and_expert_code_never_imports_method_files():
+    import subprocess
+    import sys
+
+    code = ("import sys, collect, envs, experts, sac, video_encoder, rundir; "
+            "print(sorted({'policy', 'distance', 'world_model', 'goal_vae', 'ot_reward', 'train', 'imitate'} & set(sys.modules)))")
+    out = subprocess.run([sys.executable, "-c", code], cwd=os.path.dirname(os.path.dirname(os.path.abspath(__file__))), capture_output=True, text=True)
+    assert out.returncode == 0 and out.stdout.strip() == "[]", out.stderr[-2000:]

@@ -48,9 +48,36 @@ def test_goal_gets_only_L_GI_and_policy_only_L_MG(smoke_run):
     assert all(p.grad is None for p in models["world_model"].parameters())
 
 
-def test_unknown_demo_lists_available(smoke_run):
-    with pytest.raises(ValueError, match=r"unknown demo 'stickman_fly'.*available: stickman_jump, stickman_run"):
+def test_unknown_demo_lists_the_valid_names(smoke_run):
+    with pytest.raises(ValueError, match=r"unknown demo 'stickman_fly': valid demos are walker_stand, .*, stickman_jump$"):
         imitate.imitate(smoke_run, "stickman_fly", "side", False, SMOKE)
+
+
+def test_missing_demos_are_collected_first(smoke_run, smoke_data, tmp_path):
+    """From a fresh clone's state (D_body only): imitate collects the demos it needs, both views of one body x task."""
+    data = str(tmp_path / "data")
+    shutil.copytree(os.path.join(smoke_data, "walker"), os.path.join(data, "walker"))
+    run = str(tmp_path / "run")
+    shutil.copytree(smoke_run, run, ignore=shutil.ignore_patterns("results.jsonl", "imitate"))
+    ckpt = torch.load(os.path.join(run, "checkpoint.pt"), weights_only=True)
+    ckpt["config"]["train"].update(data=data, preset="smoke")
+    torch.save(ckpt, os.path.join(run, "checkpoint.pt"))
+    rows = imitate.imitate(run, "stickman_run", "side", True, SMOKE)
+    assert [r["method"] for r in rows] == ["GIIL-ZS"] * 2 + ["GIIL-FT"] * SMOKE.seeds
+    assert sorted(os.listdir(os.path.join(data, "demos"))) == ["stickman_run_diagonal", "stickman_run_side"]
+    assert sorted(os.listdir(os.path.join(data, "demos", "stickman_run_side"))) == ["00.npz", "01.npz"]
+
+
+def test_default_run_follows_preset_and_agent(tmp_path):
+    """Without --run, imitate reads the run train.py writes for that --preset and agent body."""
+    import subprocess
+    import sys
+
+    script = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "imitate.py")
+    for flags, run in (([], "runs/walker_state_smoke_s0"), (["--env", "stickman"], "runs/stickman_state_smoke_s0")):
+        out = subprocess.run([sys.executable, script, "--demo", "walker_run", "--preset", "smoke"] + flags, cwd=tmp_path, capture_output=True, text=True)
+        assert out.returncode == 1 and out.stderr.startswith(f"error: no checkpoint at {run}/checkpoint.pt"), out.stderr[-2000:]
+    assert train.default_run_dir("walker", "cpu") == os.path.join("runs", "walker_state_cpu_s0")
 
 
 def test_no_checkpoint_names_the_train_command(tmp_path):
@@ -63,7 +90,7 @@ def test_demo_features_from_another_encoder_or_nan_are_errors(smoke_run, smoke_d
     shutil.copytree(smoke_data, data)
     run = str(tmp_path / "run")
     shutil.copytree(smoke_run, run)
-    ckpt = torch.load(os.path.join(run, "checkpoint.pt"), weights_only=False)
+    ckpt = torch.load(os.path.join(run, "checkpoint.pt"), weights_only=True)
     ckpt["config"]["train"]["data"] = data
     torch.save(ckpt, os.path.join(run, "checkpoint.pt"))
     path = os.path.join(data, "demos", "walker_walk_side", "01.npz")
@@ -75,34 +102,6 @@ def test_demo_features_from_another_encoder_or_nan_are_errors(smoke_run, smoke_d
     np.savez(path, **episode)
     with pytest.raises(ValueError, match=r"01.npz: key 'p' must be a finite"):
         imitate.imitate(run, "walker_walk", "side", False, SMOKE)
-
-
-def test_table_keeps_finished_cells(smoke_run, tmp_path):
-    run = str(tmp_path / "run")
-    shutil.copytree(smoke_run, run)
-    imitate.table(run, SMOKE, demos_per_cell=2)
-    lines = open(os.path.join(run, "results.jsonl")).read().splitlines()
-    tables = open(os.path.join(run, "tables.md")).read()
-    assert tables.count("| SE-SV |") == 5 and "| CE-CV |" in tables  # Table 1/2 shape, then one per task
-    imitate.table(run, SMOKE, demos_per_cell=2)  # nothing missing: nothing runs again
-    assert open(os.path.join(run, "results.jsonl")).read().splitlines() == lines
-    # rows made with other demos (D_demo regenerated since) do not count: only that cell runs again
-    rows = [json.loads(line) for line in lines]
-    for r in rows:
-        if r["demo"] == "walker_stand" and r["view"] == "side":
-            r["demo_returns"] = [0.0] * len(r["demo_returns"])
-    with open(os.path.join(run, "results.jsonl"), "w") as f:
-        f.write("".join(json.dumps(r) + "\n" for r in rows))
-    imitate.table(run, SMOKE, demos_per_cell=2)
-    new = [json.loads(line) for line in open(os.path.join(run, "results.jsonl")).read().splitlines()[len(lines):]]
-    assert {(r["demo"], r["view"]) for r in new} == {("walker_stand", "side")} and len(new) == 2 + SMOKE.seeds
-    # other finetuning settings: the GIIL-FT cells run again, no GIIL-ZS cell does; only in the settings asked for
-    before = len(open(os.path.join(run, "results.jsonl")).read().splitlines())
-    imitate.table(run, dataclasses.replace(SMOKE, goal_lr=1e-4), settings=("CE-CV",), demos_per_cell=2)
-    new = [json.loads(line) for line in open(os.path.join(run, "results.jsonl")).read().splitlines()[before:]]
-    assert {(r["method"], r["setting"]) for r in new} == {("GIIL-FT", "CE-CV")} and len(new) == 4 * SMOKE.seeds
-    tables = open(os.path.join(run, "tables.md")).read()
-    assert "| SE-SV | " in tables and "| SE-SV | - |" not in tables  # the zero-shot cells still fill the other settings
 
 
 def test_command_line(smoke_run, tmp_path):

@@ -13,7 +13,7 @@ from conftest import train_args
 
 
 def test_smoke_run_writes_checkpoint_metrics_and_goal_reaching(smoke_run):
-    ckpt = torch.load(os.path.join(smoke_run, "checkpoint.pt"), weights_only=False)
+    ckpt = torch.load(os.path.join(smoke_run, "checkpoint.pt"), weights_only=True)
     assert ckpt["step"] == train.TRAIN_PRESETS["smoke"]["steps"] and ckpt["encoder"] == "default-v1"
     assert ckpt["config"]["wm"]["obs"] == "state" and ckpt["config"]["wm"]["deter"] == 16  # the smoke preset, resolved
     lines = [json.loads(l) for l in open(os.path.join(smoke_run, "metrics.jsonl"))]
@@ -36,13 +36,13 @@ def test_resume_continues_and_refuses_to_overwrite(smoke_run, smoke_data, tmp_pa
     run = str(tmp_path / "run")
     shutil.copytree(smoke_run, run)
     cfgs = train.resolve_configs(train_args(data=smoke_data, steps=8), "smoke")
-    with pytest.raises(SystemExit, match="pass --resume"):
+    with pytest.raises(ValueError, match="pass --resume"):
         train.train(cfgs, run, resume=False)
     train.train(cfgs, run, resume=True)
-    assert torch.load(os.path.join(run, "checkpoint.pt"), weights_only=False)["step"] == 8
+    assert torch.load(os.path.join(run, "checkpoint.pt"), weights_only=True)["step"] == 8
     assert [json.loads(l)["step"] for l in open(os.path.join(run, "metrics.jsonl"))] == [2, 4, 6, 8]
     other = train.resolve_configs(train_args(data=smoke_data, **{"wm.deter": 32}), "smoke")
-    with pytest.raises(SystemExit, match=r"other wm\.deter"):
+    with pytest.raises(ValueError, match=r"other wm\.deter"):
         train.train(other, run, resume=True)
 
 
@@ -53,7 +53,7 @@ def test_nan_loss_stops_and_keeps_last_checkpoint(smoke_run, smoke_data, tmp_pat
     original = train.goal_vae.GoalVAE.loss
     monkeypatch.setattr(train.goal_vae.GoalVAE, "loss", lambda self, p, post: (original(self, p, post)[0] * float("nan"), {}))
     cfgs = train.resolve_configs(train_args(data=smoke_data, steps=12), "smoke")
-    with pytest.raises(SystemExit, match=r"Eq. 3 goal-VAE loss is nan at update 6.*checkpoint.pt \(update 6\), untouched"):
+    with pytest.raises(ValueError, match=r"Eq. 3 goal-VAE loss is nan at update 6.*checkpoint.pt \(update 6\), untouched"):
         train.train(cfgs, run, resume=True)
     assert open(os.path.join(run, "checkpoint.pt"), "rb").read() == before
 
@@ -76,7 +76,7 @@ def test_paper_preset_builds_pixel_dreamer_sizes_and_updates(smoke_data, tmp_pat
     cfgs = train.resolve_configs(train_args(**small), "paper")
     assert (cfgs["wm"].obs, cfgs["wm"].deter, cfgs["wm"].cnn_depth) == ("pixels", 1024, 48)
     train.train(cfgs, str(tmp_path / "paper"), resume=False)
-    ckpt = torch.load(tmp_path / "paper" / "checkpoint.pt", weights_only=False)
+    ckpt = torch.load(tmp_path / "paper" / "checkpoint.pt", weights_only=True)
     assert ckpt["step"] == 2 and ckpt["obs_shape"] == (64, 64, 3)
 
 
@@ -101,6 +101,6 @@ def test_command_line_runs_and_resumes(smoke_data, tmp_path):
     assert all(len(s["policy"]) == 4 for s in json.load(open(os.path.join(run, "goal_reaching.json"))).values())  # 2 demos x 2
     again = subprocess.run(base + ["--resume", "--steps", "8"], cwd=cwd, capture_output=True, text=True)
     assert again.returncode == 0 and "resumed" in again.stdout
-    assert torch.load(os.path.join(run, "checkpoint.pt"), weights_only=False)["step"] == 8
+    assert torch.load(os.path.join(run, "checkpoint.pt"), weights_only=True)["step"] == 8
     bad = subprocess.run(base[:3] + ["humanoid"], cwd=cwd, capture_output=True, text=True)
     assert bad.returncode != 0 and "valid body names are walker, stickman" in bad.stderr

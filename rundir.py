@@ -1,0 +1,124 @@
+"""What every run checks and keeps safe (train.py, imitate.py, experts.py): its numeric flags, checked at start-up, and
+its run directory (runs/<name>/): one writer at a time, and logs that a killed run leaves usable.
+
+check_flags   a one-line error naming the flag of a number out of its range (--steps 0, --holdout-every 1, --goal-lr 1e3)
+lock          runs/<name>/lock, created with O_EXCL and holding the writer's pid: a second trainer of the same run
+              stops with a one-line error; a lock whose process is gone (a killed run) is stale and taken over
+trim_jsonl    on resume, metrics.jsonl keeps only the rows up to the checkpoint's update (the killed run logged
+              further updates, which the resumed run logs again)
+read_jsonl    the rows of a .jsonl log; a last line cut short by a kill is dropped, any other bad line is an error
+append_jsonl  one row, on a line of its own after such a cut line
+"""
+import contextlib
+import dataclasses
+import json
+import math
+import os
+
+from collect import atomic_write
+
+# Ranges of the numeric flags that are not counts or sizes (those are >= 1): (low, high), None = no bound. Learning
+# rates lie in (0, 1), the fields of POSITIVE above 0, any other float is >= 0.
+RANGES = {"seed": (0, None), "seed_steps": (0, None), "policy_start": (0, None), "critic_warmup": (0, None),
+          "holdout_every": (2, None),  # 1 would hold out every episode
+          "value_only": (0, 1), "finetune_policy": (0, 1), "video": (0, 1),
+          "gamma": (0, 1), "lambda_": (0, 1), "tau": (0, 1), "goal_mix": (0, 1), "slow_critic_rate": (0, 1), "return_norm_decay": (0, 1)}
+POSITIVE = ("grad_clip", "min_std", "max_std", "mean_scale", "kappa", "init_alpha")
+
+
+def check_flags(config, prefix=""):
+    """One-line ValueError naming the flag (--<prefix><field>) of a numeric field of the dataclass `config` out of range."""
+    for field in dataclasses.fields(config):
+        name, value = field.name, getattr(config, field.name)
+        if isinstance(value, bool) or not isinstance(value, (int, float)):
+            continue
+        if name.endswith("lr"):
+            ok, want = 0 < value < 1, "a learning rate in (0, 1)"
+        elif name in POSITIVE:
+            ok, want = 0 < value < math.inf, "> 0"
+        else:
+            low, high = RANGES.get(name, (1 if isinstance(value, int) else 0, None))
+            ok = math.isfinite(value) and low <= value <= (math.inf if high is None else high)
+            want = f">= {low}" if high is None else f"in [{low}, {high}]"
+        if not ok:
+            raise ValueError(f"--{prefix}{name.replace('_', '-')} {value}: must be {want}")
+
+
+def _alive(pid):
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:  # another user's process
+        pass
+    return True
+
+
+@contextlib.contextmanager
+def lock(run_dir):
+    """Hold run_dir/lock while the block runs; ValueError naming the other process if a live one holds it."""
+    os.makedirs(run_dir, exist_ok=True)
+    path = os.path.join(run_dir, "lock")
+    for attempt in range(3):
+        try:
+            fd = os.open(path, os.O_CREAT | os.O_EXCL | os.O_WRONLY)
+            break
+        except FileExistsError:
+            try:
+                with open(path) as f:
+                    holder = f.read().strip()
+            except FileNotFoundError:  # released meanwhile: try again
+                continue
+            if holder.isdigit() and _alive(int(holder)):
+                raise ValueError(f"{run_dir} is in use by process {holder} (its lock file {path}): wait for that run to end, "
+                                 f"or train into another --run-dir; delete {path} only if no such process runs") from None
+            with contextlib.suppress(FileNotFoundError):
+                os.remove(path)  # stale: its process was killed
+    else:
+        raise ValueError(f"{run_dir}: could not take its lock file {path} (other processes are starting on it); try again")
+    with os.fdopen(fd, "w") as f:
+        f.write(str(os.getpid()))
+    try:
+        yield
+    finally:
+        with contextlib.suppress(FileNotFoundError):
+            os.remove(path)
+
+
+def read_jsonl(path):
+    """The rows of a .jsonl file, [] if there is none (a last line cut by a kill is dropped)."""
+    if not os.path.exists(path):
+        return []
+    with open(path) as f:
+        lines = f.read().split("\n")
+    rows = []
+    for number, line in enumerate(lines, 1):
+        try:
+            if line.strip():
+                rows.append(json.loads(line))
+        except json.JSONDecodeError as error:
+            if number < len(lines):  # not the last line: not a kill's doing
+                raise ValueError(f"{path}: line {number} is not a JSON row ({error}); delete that line") from None
+    return rows
+
+
+def trim_jsonl(path, step):
+    """Keep the rows of `path` logged at update <= step; rewritten atomically."""
+    rows = [r for r in read_jsonl(path) if r["step"] <= step]
+    atomic_write(path, lambda f: f.write("".join(json.dumps(r) + "\n" for r in rows).encode()))
+
+
+def append_jsonl(path, row):
+    """Append one row. A last line without its newline (a kill) is completed if it is a whole row, as read_jsonl
+    counts it, and dropped otherwise, so that the new row starts on a line of its own."""
+    with open(path, "a+b") as f:
+        f.seek(0)
+        text = f.read()
+        last = text[text.rfind(b"\n") + 1 :]
+        if last:
+            try:
+                json.loads(last)
+                f.write(b"\n")
+            except json.JSONDecodeError:
+                f.truncate(len(text) - len(last))
+        f.write((json.dumps(row) + "\n").encode())

@@ -1,0 +1,341 @@
+"""Reliability (smoke preset): kill -9 and --resume, committed expert weights, partial or mixed data, divergence,
+numeric flags, run directories, corrupt files, weights-only checkpoints."""
+import glob
+import json
+import os
+import shutil
+import signal
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+import torch
+
+import collect
+import experts
+import imitate
+import rundir
+import tables
+import train
+from conftest import train_args
+
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+TINY = dict(steps=12, seed_steps=4, batch=8, hidden=8, snapshot_every=6, eval_every=10_000, checkpoint_minutes=0.0, final_episodes=1)
+SMOKE_IMITATE = imitate.ImitateConfig(**imitate.PRESETS["smoke"])
+# train.py run as a script that SIGKILLs itself while writing its second checkpoint (update 6 of the smoke preset),
+# leaving a half-written temporary file, metrics rows past its checkpoint and its lock behind
+KILLED_TRAIN = """
+import os, runpy, signal, sys
+import collect
+saves = []
+def dying_write(path, write, original=collect.atomic_write):
+    if path.endswith("checkpoint.pt"):
+        saves.append(path)
+        if len(saves) == 2:
+            with open(path + ".tmp", "wb") as f:
+                f.write(b"half a checkpoint")
+            os.kill(os.getpid(), signal.SIGKILL)
+    original(path, write)
+collect.atomic_write = dying_write
+sys.argv = ["train.py"] + sys.argv[1:]
+runpy.run_path("train.py", run_name="__main__")
+"""
+
+
+def snapshot(folder):
+    """{relative path: bytes} of every file under folder."""
+    out = {}
+    for path in glob.glob(os.path.join(folder, "**", "*"), recursive=True):
+        if os.path.isfile(path):
+            with open(path, "rb") as f:
+                out[os.path.relpath(path, folder)] = f.read()
+    return out
+
+
+def copy_run(smoke_run, tmp_path, data=None):
+    """A copy of the smoke run's phase 1 (without the results other tests may have added), reading D_body from `data` if given."""
+    run = str(tmp_path / "run")
+    shutil.copytree(smoke_run, run, ignore=shutil.ignore_patterns("results.jsonl", "imitate", "tables.md"))
+    if data:
+        path = os.path.join(run, "checkpoint.pt")
+        ckpt = torch.load(path, weights_only=True)
+        ckpt["config"]["train"]["data"] = data
+        torch.save(ckpt, path)
+    return run
+
+
+# --- what already held: kill -9, then --resume, is bit-identical to an uninterrupted run ---
+
+def test_kill_then_resume_equals_an_uninterrupted_run(smoke_run, smoke_data, tmp_path):
+    run = str(tmp_path / "killed")
+    flags = ["--env", "walker", "--preset", "smoke", "--data", smoke_data, "--run-dir", run]
+    killed = subprocess.run([sys.executable, "-c", KILLED_TRAIN] + flags, cwd=ROOT, capture_output=True, text=True)
+    assert killed.returncode == -signal.SIGKILL, killed.stderr[-2000:]
+    assert torch.load(os.path.join(run, "checkpoint.pt"), weights_only=True)["step"] == 3
+    assert os.path.exists(os.path.join(run, "lock")) and os.path.exists(os.path.join(run, "checkpoint.pt.tmp"))
+    resumed = subprocess.run([sys.executable, "train.py", "--resume"] + flags, cwd=ROOT, capture_output=True, text=True)
+    assert resumed.returncode == 0, resumed.stderr[-2000:]
+    assert "resumed" in resumed.stdout and not os.path.exists(os.path.join(run, "lock")) and not os.path.exists(os.path.join(run, "checkpoint.pt.tmp"))
+    a, b = (torch.load(os.path.join(r, "checkpoint.pt"), weights_only=True) for r in (run, smoke_run))
+    assert a["step"] == b["step"] == 6 and a["rng"] == b["rng"] and torch.equal(a["torch_rng"], b["torch_rng"])
+    for name in b["models"]:
+        for key, value in b["models"][name].items():
+            assert torch.equal(a["models"][name][key], value), (name, key)
+    for name in ("goal_reaching.json", "imagination.json"):
+        assert json.load(open(os.path.join(run, name))) == json.load(open(os.path.join(smoke_run, name)))
+    rows = [[{k: v for k, v in json.loads(line).items() if k != "updates_per_s"} for line in open(os.path.join(r, "metrics.jsonl"))] for r in (run, smoke_run)]
+    assert [r["step"] for r in rows[0]] == [2, 4, 6] and rows[0] == rows[1]  # the killed run's rows past update 3 are not repeated
+
+
+# --- 1. committed expert weights are overwritten only when a run asks for it by name ---
+
+@pytest.fixture
+def committed(tmp_path, monkeypatch):
+    """A copy of the committed walker experts as experts/, and its bytes."""
+    folder = tmp_path / "experts"
+    for path in glob.glob(os.path.join(experts.EXPERT_DIR, "**", "walker_*.pt"), recursive=True):
+        target = folder / os.path.relpath(path, experts.EXPERT_DIR)
+        target.parent.mkdir(parents=True, exist_ok=True)
+        shutil.copy(path, target)
+    monkeypatch.setattr(experts, "EXPERT_DIR", str(folder))
+    return str(folder), snapshot(str(folder))
+
+
+def test_experts_never_overwrite_committed_weights_unasked(committed, tmp_path):
+    folder, before = committed
+    cfg = experts.ExpertConfig(**TINY)
+    with pytest.raises(ValueError, match=r"--resume: no training state at .*missing.*walker.pt .*add --replace-committed"):
+        experts.train("walker", list(experts.envs.TASKS), cfg, str(tmp_path / "missing"), resume=True)
+    with pytest.raises(ValueError, match=r"walker_stand.pt and \d+ more committed files .* pass --replace-committed"):
+        experts.train("walker", list(experts.envs.TASKS), cfg, str(tmp_path / "fresh"), resume=False)
+    assert snapshot(folder) == before and not os.path.exists(tmp_path / "missing")
+    # asked by name: the compact states resume (walker stand has none committed: named), at their own step
+    with pytest.raises(FileNotFoundError, match="resume/walker_stand.pt: leave stand out of --tasks"):
+        experts.train("walker", ["stand", "walk"], cfg, str(tmp_path / "missing"), resume=True, replace_committed=True)
+    with pytest.raises(ValueError, match=r"--steps 12 is below step \d{6} of the state resumed"):
+        experts.train("walker", ["walk", "run"], cfg, str(tmp_path / "missing"), resume=True, replace_committed=True)
+    assert snapshot(folder) == before and not os.path.exists(tmp_path / "missing")
+
+
+# --- 2. partial or mixed data is completed or refused, never used silently ---
+
+def test_killed_collection_is_completed_before_training(smoke_data, tmp_path):
+    data = str(tmp_path / "data")
+    shutil.copytree(os.path.join(smoke_data, "walker"), os.path.join(data, "walker"))
+    os.remove(os.path.join(data, "walker", collect.COMPLETE))  # as a collection killed before its end leaves it
+    for name in ("stand_0000.npz", "walk_0000.npz", "run_0000.npz"):
+        os.remove(os.path.join(data, "walker", name))
+    cfgs = train.resolve_configs(train_args(data=data, preset="smoke"), "smoke")  # the preset whose D_body is completed
+    train.train(cfgs, str(tmp_path / "run"), resume=False)
+    assert sorted(os.listdir(os.path.join(data, "walker"))) == sorted(os.listdir(os.path.join(smoke_data, "walker")))
+
+
+def test_demos_of_two_lengths_are_refused(smoke_run, smoke_data, tmp_path):
+    data = str(tmp_path / "data")
+    for view in ("side", "diagonal"):
+        shutil.copytree(os.path.join(smoke_data, "demos", f"walker_run_{view}"), os.path.join(data, "demos", f"walker_run_{view}"))
+    path = os.path.join(data, "demos", "walker_run_side", "01.npz")
+    episode = dict(np.load(path))
+    collect.save_episode(path, {k: v[:11] if v.ndim else v for k, v in episode.items()})
+    run = copy_run(smoke_run, tmp_path, data)
+    with pytest.raises(ValueError, match=r"walker_run_side mixes episodes of 21 and 11 steps .*00.npz.*01.npz"):
+        imitate.imitate(run, "walker_run", "side", True, SMOKE_IMITATE)
+
+
+def test_collection_into_another_presets_folder_is_refused(smoke_data, tmp_path):
+    data = str(tmp_path / "data")
+    shutil.copytree(os.path.join(smoke_data, "walker"), os.path.join(data, "walker"))
+    before = snapshot(data)
+    longer = collect.CollectConfig(**dict(collect.PRESETS["smoke"], explore_episodes=3, episode_steps=30))
+    with pytest.raises(ValueError, match=r"explore_0000.npz is not a 30-step episode .*pass another --data"):
+        collect.collect_body("walker", longer, data, workers=1)
+    assert snapshot(data) == before
+    assert train.resolve_configs(train_args(), "smoke")["train"].data == collect.DATA["smoke"] != collect.DATA["cpu"]  # apart by default
+
+
+# --- 3. divergence stops the run, names what was kept ---
+
+def test_divergence_and_nan_gradient_stop_without_saving(smoke_run, smoke_data, tmp_path, monkeypatch):
+    fresh = str(tmp_path / "fresh")
+    original = train.goal_vae.GoalVAE.loss
+    monkeypatch.setattr(train.goal_vae.GoalVAE, "loss", lambda self, p, post: (original(self, p, post)[0] * 1e30, {}))
+    cfgs = train.resolve_configs(train_args(data=smoke_data), "smoke")
+    with pytest.raises(ValueError, match=r"Eq. 3 goal-VAE loss is [\d.]+e\+3\d at update 0: stopped; no checkpoint was written yet .*--goal-lr is 0.0006"):
+        train.train(cfgs, fresh, resume=False)
+    assert not os.path.exists(os.path.join(fresh, "checkpoint.pt"))
+    # a finite loss whose gradient is NaN (sqrt at 0): the resumed checkpoint is named and left as it was
+    run = copy_run(smoke_run, tmp_path)
+    before = snapshot(run)
+    nan_grad = lambda self, p, post: (original(self, p, post)[0] + (next(self.parameters()) * 0).sqrt().sum(), {})
+    monkeypatch.setattr(train.goal_vae.GoalVAE, "loss", nan_grad)
+    with pytest.raises(ValueError, match=r"goal-VAE loss has a non-finite gradient \(norm nan\) at update 6: stopped; the last good checkpoint is .*checkpoint.pt \(update 6\)"):
+        train.train(train.resolve_configs(train_args(data=smoke_data, steps=9), "smoke"), run, resume=True)
+    assert snapshot(run)["checkpoint.pt"] == before["checkpoint.pt"]
+
+
+def test_phase_2_divergence_stops_before_writing_a_result(smoke_run, tmp_path, monkeypatch):
+    run = copy_run(smoke_run, tmp_path)
+    original = imitate.goal_inference_loss
+
+    def nan_loss(*args, **kwargs):
+        loss, critic_loss, metrics = original(*args, **kwargs)
+        return loss * float("nan"), critic_loss, metrics
+
+    monkeypatch.setattr(imitate, "goal_inference_loss", nan_loss)
+    with pytest.raises(ValueError, match=r"GIIL-FT seed 0: Eq. 5 L_GI is nan at update 1: stopped"):
+        imitate.imitate(run, "walker_run", "side", True, SMOKE_IMITATE, zero_shot=False)
+    assert not os.path.exists(os.path.join(run, "results.jsonl"))
+
+
+# --- 4. every numeric flag is checked at start-up, naming the flag ---
+
+@pytest.mark.parametrize("given, message", [
+    (dict(steps=0), "--steps 0: must be >= 1"), (dict(checkpoint_every=0), "--checkpoint-every 0: must be >= 1"),
+    (dict(holdout_every=1), "--holdout-every 1: must be >= 2"), (dict(holdout_every=0), "--holdout-every 0: must be >= 2"),
+    (dict(threads=0), "--threads 0: must be >= 1"), (dict(eval_steps=-5), "--eval-steps -5: must be >= 1"),
+    ({"goal.lr": 1e3}, r"--goal-lr 1000.0: must be a learning rate in \(0, 1\)"), ({"ac.critic_lr": 1e3}, "--ac-critic-lr 1000.0"),
+    ({"dist.lr": float("nan")}, "--dist-lr nan"), ({"ac.gamma": 1.5}, r"--ac-gamma 1.5: must be in \[0, 1\]"),
+])
+def test_train_flags_out_of_range(given, message, smoke_data, tmp_path):
+    with pytest.raises(ValueError, match=message):
+        train.train(train.resolve_configs(train_args(data=smoke_data, **given), "smoke"), str(tmp_path / "run"), resume=False)
+    assert not os.path.exists(tmp_path / "run")
+
+
+@pytest.mark.parametrize("given, message", [
+    (dict(steps=0), "--steps 0: must be >= 1"), (dict(seeds=0), "--seeds 0: must be >= 1"),
+    (dict(eval_episodes=0), "--eval-episodes 0: must be >= 1"), (dict(eval_steps=0), "--eval-steps 0: must be >= 1"),
+    (dict(demo_stride=0), "--demo-stride 0: must be >= 1"), (dict(starts=0), "--starts 0: must be >= 1"),
+    (dict(critic_warmup=3), "--critic-warmup 3 is not below --steps 3: the goal would never move"),
+])
+def test_imitate_flags_out_of_range(given, message, smoke_run, tmp_path):
+    run = copy_run(smoke_run, tmp_path)
+    ic = imitate.ImitateConfig(**{**imitate.PRESETS["smoke"], **given})
+    with pytest.raises(ValueError, match=message):
+        imitate.imitate(run, "walker_run", "side", True, ic)
+    assert not os.path.exists(os.path.join(run, "results.jsonl"))
+
+
+def test_every_preset_passes_the_checks_and_the_command_line_prints_one_line():
+    for preset in ("smoke", "cpu", "paper"):
+        for name, (cls, presets, prefix) in train.COMPONENTS.items():
+            rundir.check_flags(cls(**presets[preset]), prefix)
+        rundir.check_flags(imitate.ImitateConfig(**imitate.PRESETS[preset]))
+    rundir.check_flags(experts.ExpertConfig())
+    with pytest.raises(ValueError, match="--snapshot-every 0: must be >= 1"):
+        rundir.check_flags(experts.ExpertConfig(snapshot_every=0))
+    out = subprocess.run([sys.executable, "train.py", "--preset", "smoke", "--eval-steps", "0"], cwd=ROOT, capture_output=True, text=True)
+    assert out.returncode == 1 and out.stderr == "error: --eval-steps 0: must be >= 1\n"
+
+
+# --- 5. run directories: one writer, --resume needs a checkpoint, logs without duplicates or cut rows ---
+
+def test_a_live_trainer_locks_its_run_directory(smoke_run, smoke_data, tmp_path):
+    run = copy_run(smoke_run, tmp_path)
+    other = subprocess.Popen(["sleep", "60"])
+    try:
+        with open(os.path.join(run, "lock"), "w") as f:
+            f.write(str(other.pid))
+        before = snapshot(run)
+        cfgs = train.resolve_configs(train_args(data=smoke_data, steps=8), "smoke")
+        with pytest.raises(ValueError, match=rf"run is in use by process {other.pid} \(its lock file .*lock\)"):
+            train.train(cfgs, run, resume=True)
+        assert snapshot(run) == before
+    finally:
+        other.kill()
+        other.wait()
+    with pytest.raises(ValueError, match=r"--resume: no checkpoint at .*nothing.checkpoint.pt; drop --resume"):
+        train.train(cfgs, str(tmp_path / "nothing"), resume=True)
+    assert not os.path.exists(tmp_path / "nothing")
+
+
+def test_resume_drops_metrics_rows_past_the_checkpoint(smoke_run, smoke_data, tmp_path):
+    run = copy_run(smoke_run, tmp_path)
+    with open(os.path.join(run, "metrics.jsonl"), "a") as f:
+        f.write(json.dumps({"step": 8, "wm_loss": 1.0}) + "\n" + '{"step": 10, "wm_lo')  # logged by a run killed after update 6
+    train.train(train.resolve_configs(train_args(data=smoke_data, steps=8), "smoke"), run, resume=True)
+    rows = [json.loads(line) for line in open(os.path.join(run, "metrics.jsonl"))]
+    assert [r["step"] for r in rows] == [2, 4, 6, 8] and rows[-1]["wm_loss"] != 1.0
+
+
+def test_results_with_a_cut_last_line_still_table(tmp_path):
+    path = str(tmp_path / "results.jsonl")
+    row = {"demo": "walker_run", "view": "side", "method": "GIIL-ZS", "seed": 0, "score": 1.0}
+    with open(path, "w") as f:
+        f.write(json.dumps(row) + "\n" + json.dumps(row)[:20])  # a kill while appending
+    assert tables.load_results(str(tmp_path)) == [row]
+    rundir.append_jsonl(path, dict(row, seed=1))
+    assert [r["seed"] for r in rundir.read_jsonl(path)] == [0, 1] and open(path).read().count("\n") == 2
+    with open(path, "a") as f:
+        f.write(json.dumps(dict(row, seed=2)))  # whole, but cut before its newline: kept, like read_jsonl keeps it
+    rundir.append_jsonl(path, dict(row, seed=3))
+    assert [r["seed"] for r in rundir.read_jsonl(path)] == [0, 1, 2, 3]
+    with open(path, "a") as f:
+        f.write("not json\n" + json.dumps(row) + "\n")
+    with pytest.raises(ValueError, match=r"results.jsonl: line 5 is not a JSON row"):
+        tables.load_results(str(tmp_path))
+
+
+# --- 6. a bad episode file is named ---
+
+def test_bad_episodes_are_named(smoke_data, tmp_path):
+    data = str(tmp_path / "data")
+    folder = os.path.join(data, "walker")
+    shutil.copytree(os.path.join(smoke_data, "walker"), folder)
+    keys = ("state", "action", "is_first", "p")
+    with open(os.path.join(folder, "text.npz"), "w") as f:
+        f.write("not an archive\n")
+    with pytest.raises(ValueError, match=r"text.npz: not a readable .npz episode"):
+        collect.load_folder(folder, keys)
+    with open(os.path.join(folder, "text.npz"), "wb") as f:
+        np.save(f, np.zeros(3))
+    with pytest.raises(ValueError, match=r"text.npz: not a readable .npz episode \(no zip archive"):
+        collect.load_folder(folder, keys)
+    os.remove(os.path.join(folder, "text.npz"))
+    path = os.path.join(folder, "walk_0000.npz")
+    episode = dict(np.load(path))
+    collect.save_episode(path, dict(episode, action=episode["action"][:, :5]))
+    with pytest.raises(ValueError, match=r"walk_0000.npz: key 'action' has shape \(5,\) per step, .*explore_0000.npz has \(6,\)"):
+        collect.load_folder(folder, keys)
+    episode["state"][7, 2] = np.nan
+    collect.save_episode(path, episode)
+    cfgs = train.resolve_configs(train_args(data=data), "smoke")
+    with pytest.raises(ValueError, match=r"walk_0000.npz: key 'state' must be a finite array, has nan at step 7"):
+        train.train(cfgs, str(tmp_path / "run"), resume=False)
+
+
+# --- 7. every checkpoint loads weights-only; older pickled ones are named and converted ---
+
+def test_every_kind_of_checkpoint_loads_weights_only(smoke_run, tmp_path, monkeypatch):
+    committed = glob.glob(os.path.join(experts.EXPERT_DIR, "**", "*.pt"), recursive=True)
+    assert len(committed) >= 56
+    for path in committed:
+        torch.load(path, weights_only=True)
+    torch.load(os.path.join(smoke_run, "checkpoint.pt"), weights_only=True)
+    monkeypatch.setattr(experts, "EXPERT_DIR", str(tmp_path / "experts"))
+    experts.train("walker", ["stand", "walk"], experts.ExpertConfig(**TINY), str(tmp_path / "ckpt"), resume=False)
+    written = [str(tmp_path / "ckpt" / "walker.pt"), experts.expert_path("walker", "walk"), experts.expert_path("walker", "walk", 6),
+               experts.compact_path("walker", "walk")]
+    for path in written:
+        torch.load(path, weights_only=True)
+    assert isinstance(torch.load(written[0], weights_only=True)["replay"]["obs"], torch.Tensor)
+
+
+def test_older_pickled_checkpoint_is_named_then_upgraded(smoke_run, tmp_path):
+    run = copy_run(smoke_run, tmp_path)
+    path = os.path.join(run, "checkpoint.pt")
+    new = torch.load(path, weights_only=True)
+    torch.save(dict(new, rng=collect.generator(new["rng"]), obs_shape=np.int64(new["obs_shape"])), path)  # the format before
+    with pytest.raises(ValueError, match=r"checkpoint.pt holds pickled Python objects .*python train.py --upgrade-checkpoint .*checkpoint.pt"):
+        train.load_run(run)
+    out = subprocess.run([sys.executable, "train.py", "--upgrade-checkpoint", path], cwd=ROOT, capture_output=True, text=True)
+    assert out.returncode == 0, out.stderr[-2000:]
+    upgraded = torch.load(path, weights_only=True)
+    assert upgraded["rng"] == new["rng"] and upgraded["obs_shape"] == new["obs_shape"]
+    for name, state in new["models"].items():
+        assert all(torch.equal(upgraded["models"][name][k], v) for k, v in state.items())
+    with open(path, "wb") as f:
+        f.write(b"PK\x03\x04 half a zip")
+    with pytest.raises(ValueError, match=r"checkpoint.pt: not a readable checkpoint"):
+        train.load_run(run)

@@ -1,0 +1,38 @@
+"""tables.py: the table keeps finished cells and reruns only what changed (other demos, other settings)."""
+import dataclasses
+import json
+import os
+import shutil
+
+import imitate
+import tables
+
+SMOKE = imitate.ImitateConfig(**imitate.PRESETS["smoke"])
+
+
+def test_table_keeps_finished_cells(smoke_run, tmp_path):
+    run = str(tmp_path / "run")
+    shutil.copytree(smoke_run, run)
+    tables.table(run, SMOKE, demos_per_cell=2)
+    lines = open(os.path.join(run, "results.jsonl")).read().splitlines()
+    text = open(os.path.join(run, "tables.md")).read()
+    assert text.count("| SE-SV |") == 5 and "| CE-CV |" in text  # Table 1/2 shape, then one per task
+    tables.table(run, SMOKE, demos_per_cell=2)  # nothing missing: nothing runs again
+    assert open(os.path.join(run, "results.jsonl")).read().splitlines() == lines
+    # rows made with other demos (D_demo regenerated since) do not count: only that cell runs again
+    rows = [json.loads(line) for line in lines]
+    for r in rows:
+        if r["demo"] == "walker_stand" and r["view"] == "side":
+            r["demo_returns"] = [0.0] * len(r["demo_returns"])
+    with open(os.path.join(run, "results.jsonl"), "w") as f:
+        f.write("".join(json.dumps(r) + "\n" for r in rows))
+    tables.table(run, SMOKE, demos_per_cell=2)
+    new = [json.loads(line) for line in open(os.path.join(run, "results.jsonl")).read().splitlines()[len(lines):]]
+    assert {(r["demo"], r["view"]) for r in new} == {("walker_stand", "side")} and len(new) == 2 + SMOKE.seeds
+    # other finetuning settings: the GIIL-FT cells run again, no GIIL-ZS cell does; only in the settings asked for
+    before = len(open(os.path.join(run, "results.jsonl")).read().splitlines())
+    tables.table(run, dataclasses.replace(SMOKE, goal_lr=1e-4), settings=("CE-CV",), demos_per_cell=2)
+    new = [json.loads(line) for line in open(os.path.join(run, "results.jsonl")).read().splitlines()[before:]]
+    assert {(r["method"], r["setting"]) for r in new} == {("GIIL-FT", "CE-CV")} and len(new) == 4 * SMOKE.seeds
+    text = open(os.path.join(run, "tables.md")).read()
+    assert "| SE-SV | " in text and "| SE-SV | - |" not in text  # the zero-shot cells still fill the other settings
