@@ -1,0 +1,271 @@
+"""Sec. 5, baseline GenRL (Mazzaglia et al. 2024): a task policy trained from scratch in the frozen world model's
+imagination, rewarded for following the demo's video features mapped into the latent space.
+
+GenRL's recipe, written with this project's models (world_model.py, goal_vae.py, policy.py):
+  connector  GenRL learns a sequence model that unrolls one video-language embedding into a short sequence of
+             latent states. Ours is phase 1's goal encoder q(s | p) (goal_vae.py) applied to each of the first
+             demo's last L features p_{T-L+1..T}: the target sequence s*_0..s*_{L-1}, [mean_h, mean_z] each, which
+             ends at the prompt p_T, "the last embedding of the first demonstration trajectory" (Sec. 5).
+             Deviation: the sequence comes from the demo's own last features, not from a learnt unroll of p_T alone
+             (there is no sequence connector here).
+  reward     on each imagined arrival state s_j (j = 1..H, world_model.py's alignment) r_j = sim(s_j, s*_i(j)), with
+             GenRL's choices: sim(x, y) = x.y / max(|x|, |y|)^2 ("max_cosine", 1 only for x = y), taken between the
+             states' images under the first layer of the world model's decoder (GenRL compares states in its
+             decoder's input layer too; its decoder reads z alone, ours [h, z]); and sequence alignment ("align_sequence"): every window of k imagined
+             steps, offset t = 0..H-k, is scored by its mean sim to the target's first k states; with t* the best
+             offset of each trajectory, i(j) = clamp(j - 1 - t*, 0, L - 1): the target starts where the imagined
+             trajectory matches its beginning best, the steps before it are compared with the target's first
+             state. The alignment is a constant (argmax, no gradient); the reward is differentiable in s_j.
+  policy     a fresh actor pi(a | s) and critic V(s), the run's ActorCriticConfig (sizes, rates, horizon),
+             trained by Dreamer's actor-critic (policy.rollout, lambda_return, actor_loss, critic_loss) in the
+             frozen world model's imagination from D_body posterior states. The multi-task policy of phase 1 and
+             the distance network are not used. The actor takes a constant zero goal of size 1 (no_goal): with
+             the goal's weights multiplied by 0 it is pi(a | s).
+Evaluation: the trained actor in the agent's own environment with the task's true reward, Eq. 8's normalised
+score, eval_episodes episodes per seed; one row per seed appended to runs/<name>/results.jsonl (imitate.py's format).
+A rerun skips the seeds that already have a row for the same demos and settings. The plumbing of a per-cell
+baseline run (load_cell, evaluate_actor, cell_rows, append_row, the config flags) lives here and aime_nob.py uses it.
+
+    python genrl.py --demo stickman_run --view side --run runs/<name> [--seeds 3] [--preset smoke|cpu]
+"""
+import argparse
+import dataclasses
+import json
+import os
+import time
+
+import numpy as np
+import torch
+from tqdm import tqdm
+
+import collect
+import envs
+import evaluate
+import imitate
+import policy
+import train
+from video_encoder import check_same_encoder
+
+METHOD = "GenRL"
+
+
+@dataclasses.dataclass
+class GenRLConfig:
+    preset: str = "cpu"  # smoke | cpu: the overrides in PRESETS
+    steps: int = 400  # actor-critic updates per seed (ours: a seed in 3.2 min on 2 busy cores, measured; GenRL trains far longer)
+    starts: int = 128  # imagination start states per update, D_body posterior states (ours: half phase 1's cpu 256, for time)
+    target_len: int = 15  # L: target states, q(s | p) of the first demo's last L features (GenRL: as long as the imagination, H = 15 here)
+    align_window: int = 8  # k: imagined steps matched to the target's start (GenRL: n_frames 8, the video model's window)
+    seeds: int = 3  # Sec. 5: baselines run with 3 seeds
+    eval_episodes: int = 2  # episodes in the agent's own env per seed
+    eval_steps: int = envs.EPISODE_STEPS  # agent steps per evaluation episode
+
+    def __post_init__(self):
+        for name in ("steps", "starts", "target_len", "align_window", "seeds", "eval_episodes", "eval_steps"):
+            if getattr(self, name) < 1:
+                raise ValueError(f"--{name.replace('_', '-')} must be >= 1, got {getattr(self, name)}")
+        if self.align_window > self.target_len:
+            raise ValueError(f"--align-window {self.align_window} is longer than --target-len {self.target_len}: pass a window <= the target")
+
+
+PRESETS = {
+    "smoke": dict(steps=3, starts=8, target_len=5, align_window=3, seeds=2, eval_steps=10),
+    "cpu": dict(),
+}
+
+
+def decoder_input(world_model, feat):
+    """The world model decoder's first (linear) layer on feat (..., F) -> (..., U): where GenRL compares states."""
+    layer = world_model.decoder[0] if world_model.cfg.obs == "state" else world_model.decoder.net[0]
+    return layer(feat)
+
+
+def similarity(x, y):
+    """GenRL's "max_cosine" x.y / max(|x|, |y|)^2: (..., D), (..., D) -> (...). It is the cosine when |x| = |y| and
+    1 only for x = y; the cosine would also give 1 to any positive multiple of y."""
+    norm = torch.maximum(x.norm(dim=-1), y.norm(dim=-1)).clamp(min=1e-8)
+    return (x * y).sum(-1) / norm**2
+
+
+def aligned_reward(agent, target, window):
+    """GenRL's sequence-aligned reward (module docstring): agent (N, H, D) imagined arrival states s_1..s_H, target
+    (L, D) -> reward (N, H), differentiable in agent, and offset (N,) the best offset t* of each trajectory."""
+    N, H, D = agent.shape
+    L = len(target)
+    if window > H:
+        raise ValueError(f"--align-window {window} is longer than the run's imagination horizon {H}: pass a window <= {H}")
+    assert target.shape == (L, D) and window <= L, (agent.shape, target.shape, window)
+    with torch.no_grad():
+        windows = agent.unfold(1, window, 1).transpose(-1, -2)  # (N, H - k + 1, k, D): s_{t+1..t+k} for t = 0..H-k
+        offset = similarity(windows, target[:window]).mean(-1).argmax(-1)  # (N,) t*
+    index = (torch.arange(H, device=agent.device) - offset[:, None]).clamp(0, L - 1)  # (N, H) i(j)
+    return similarity(agent, target[index]), offset
+
+
+def target_states(models, demo_p, target_len):
+    """The connector (module docstring): q(s | p) of the demo's last L features -> decoder-layer images (L, U)."""
+    if len(demo_p) < target_len:
+        raise ValueError(f"the first demo has {len(demo_p)} features, fewer than --target-len {target_len}: pass a shorter target")
+    with torch.no_grad():
+        goals = models["goal_vae"].goal(demo_p[-target_len:])  # (L, F) = [mean_h, mean_z] of each feature
+        return decoder_input(models["world_model"], goals)
+
+
+def no_goal(n, device):
+    """The actor's constant goal, zeros (n, 1): policy.Actor with goal_dim 0 fails (its goal slice weight[:, -0:] is
+    the whole matrix), so the task actors take one input fixed at 0, which makes them pi(a | s)."""
+    return torch.zeros(n, 1, device=device)
+
+
+def train_policy(models, cfgs, gc, target, segments, seed, device):
+    """GenRL's task behaviour for one seed: gc.steps actor-critic updates in imagination from D_body segments
+    (train.Segments) -> the actor."""
+    torch.manual_seed(seed)
+    rng = np.random.default_rng(seed)
+    ac, wc, wm = cfgs["ac"], cfgs["wm"], models["world_model"]
+    actor = policy.Actor(ac, wm.feat_dim, 1, wm.action_dim).to(device)
+    critic, slow_critic = (m.to(device) for m in policy.make_critics(ac, wm.feat_dim, 0))
+    return_norm = policy.ReturnNorm(ac.return_norm_decay).to(device)
+    optims = [(torch.optim.Adam(actor.parameters(), lr=ac.actor_lr), actor), (torch.optim.Adam(critic.parameters(), lr=ac.critic_lr), critic)]
+    goal = no_goal(1, device)
+    bar = tqdm(range(gc.steps), desc=f"{METHOD} seed {seed}", leave=False)
+    for _ in bar:
+        batch = segments.sample(wc.batch, rng, device)
+        with torch.no_grad():
+            post, _ = wm.observe(batch[wc.obs], batch["action"], batch["is_first"])
+        start, _ = policy.sample_starts(post, gc.starts)
+        with policy.freeze(wm, slow_critic):  # the world model is frozen (GenRL), the slow critic a constant
+            feat, _, log_prob = policy.rollout(wm, actor, start, goal, ac.horizon)  # (N, H + 1, F)
+            reward, _ = aligned_reward(decoder_input(wm, feat[:, 1:]), target, gc.align_window)  # (N, H)
+            value = slow_critic(feat, None)  # (N, H + 1)
+            returns = policy.lambda_return(reward, value, ac.gamma, ac.lambda_)  # (N, H)
+        a_loss, metrics = policy.actor_loss(returns, log_prob, return_norm, ac.entropy)
+        c_loss, _ = policy.critic_loss(critic, feat, None, returns)
+        for (opt, module), loss in zip(optims, (a_loss, c_loss)):
+            opt.zero_grad(set_to_none=True)
+            loss.backward()
+            torch.nn.utils.clip_grad_norm_(module.parameters(), ac.grad_clip)
+            opt.step()
+        policy.ema_update(slow_critic, critic, ac.slow_critic_rate)
+        bar.set_postfix(sim=f"{reward.mean().item():.3f}", ret=f"{metrics['return']:.2f}")
+    return actor
+
+
+def run_cell(run_dir, demo, view, gc, data=None):
+    """GenRL on one demo folder for seeds 0..gc.seeds-1, skipping those with a row already -> the new rows."""
+    cell = load_cell(run_dir, demo, view, data)
+    config = result_config(gc)
+    done = {r["seed"] for r in cell_rows(cell, METHOD, config)}
+    todo = [s for s in range(gc.seeds) if s not in done]
+    models, cfgs, device = cell["models"], cell["cfgs"], cell["device"]
+    rows = []
+    if todo:
+        target = target_states(models, torch.as_tensor(cell["demos"][0]["p"], device=device), gc.target_len)
+        segments = imitate.body_segments(cfgs)
+    for seed in todo:
+        t0 = time.time()
+        actor = train_policy(models, cfgs, gc, target, segments, seed, device)
+        scores = evaluate_actor(cell, models["world_model"], actor, gc.eval_episodes, gc.eval_steps, seed)
+        rows.append(append_row(cell, METHOD, seed, scores, time.time() - t0, config))
+    report(cell, METHOD, config, len(todo))
+    return rows
+
+
+# --- per-cell plumbing of the baselines (also used by aime_nob.py) ---
+
+
+def load_cell(run_dir, demo, view, data=None):
+    """A phase-1 run and one demo folder (data/demos/<demo>_<view>): configs, models, the demos' features, task and
+    setting. data: the data folder, default the run's."""
+    device = "cuda" if torch.cuda.is_available() else "cpu"
+    cfgs, models, ckpt = train.load_run(run_dir, device)
+    if data is not None:
+        cfgs["train"] = dataclasses.replace(cfgs["train"], data=data)
+    tc = cfgs["train"]
+    torch.set_num_threads(tc.threads)
+    folder = imitate.demo_folder(tc.data, demo, view)
+    demos = collect.load_folder(folder, ("p",))
+    for k, d in enumerate(demos):
+        check_same_encoder(ckpt["encoder"], d["encoder"], os.path.join(folder, f"{k:02d}.npz"))
+    demo_body, task = demo.rsplit("_", 1)
+    envs._check_name("task", task, envs.TASKS)
+    return {"run_dir": run_dir, "cfgs": cfgs, "models": models, "ckpt": ckpt, "device": device, "demo": demo, "view": view,
+            "demos": demos, "demo_returns": [round(d["return"], 3) for d in demos], "task": task,
+            "setting": imitate.setting(tc.env, demo_body, view)}
+
+
+def evaluate_actor(cell, world_model, actor, episodes, steps, seed):
+    """The actor pi(a | s) in `episodes` episodes of the agent's own env with the task's true reward (deterministic,
+    s_t filtered by the world model, evaluate.run_episodes) -> Eq. 8's normalised scores."""
+    body, task = cell["cfgs"]["train"].env, cell["task"]
+    env_list = [envs.make_env(body, task) for _ in range(episodes)]
+    returns, _ = evaluate.run_episodes(env_list, {"world_model": world_model, "actor": actor}, no_goal(episodes, cell["device"]),
+                                       steps, cell["cfgs"]["wm"].obs, 20_000 + 100 * seed)
+    for env in env_list:
+        env.close()
+    return [evaluate.episode_score(task, r, steps) for r in returns]
+
+
+def result_config(cfg):
+    """The config fields a result depends on: all but the number of seeds."""
+    return {k: v for k, v in dataclasses.asdict(cfg).items() if k != "seeds"}
+
+
+def cell_rows(cell, method, config):
+    """This cell's rows of `method` made with the same demos (their returns) and config, the latest per seed."""
+    return [r for r in imitate.load_results(cell["run_dir"]) if r["method"] == method and r["demo"] == cell["demo"]
+            and r["view"] == cell["view"] and r.get("demo_returns") == cell["demo_returns"] and r.get("config") == config]
+
+
+def append_row(cell, method, seed, scores, seconds, config, **extra):
+    """One result row in imitate.py's format, appended to runs/<name>/results.jsonl -> the row."""
+    row = {"agent": cell["cfgs"]["train"].env, "demo": cell["demo"], "view": cell["view"], "task": cell["task"], "setting": cell["setting"],
+           "method": method, "seed": seed, "score": float(np.mean(scores)), "episode_scores": scores, "time": round(seconds, 1),
+           "demo_returns": cell["demo_returns"], "config": config, **extra}
+    with open(os.path.join(cell["run_dir"], "results.jsonl"), "a") as f:
+        f.write(json.dumps(row) + "\n")
+    return row
+
+
+def report(cell, method, config, ran):
+    """Prints the cell's score over all its finished seeds."""
+    scores = [r["score"] for r in cell_rows(cell, method, config)]
+    print(f"{method} {cell['cfgs']['train'].env} imitating {cell['demo']} ({cell['view']} view, {cell['setting']}): normalised score "
+          f"{np.mean(scores):.1f} +- {imitate.stderr(scores):.1f} over {len(scores)} seeds ({ran} run now); "
+          f"rows in {os.path.join(cell['run_dir'], 'results.jsonl')}")
+
+
+def add_config_flags(parser, cls, presets):
+    """One flag per config field (default None: 'not given', so the preset applies)."""
+    for field in dataclasses.fields(cls):
+        parser.add_argument("--" + field.name.replace("_", "-"), type=type(field.default), default=None,
+                            choices=tuple(presets) if field.name == "preset" else None, help=f"default {field.default!r}, or the preset's")
+
+
+def config_from_args(cls, presets, args):
+    """dataclass defaults < the preset's overrides < explicit flags."""
+    given = {f.name: getattr(args, f.name) for f in dataclasses.fields(cls) if getattr(args, f.name) is not None}
+    return cls(**{**presets[given.get("preset", "cpu")], **given})
+
+
+def cell_parser(description, cls, presets):
+    parser = argparse.ArgumentParser(description=description)
+    parser.add_argument("--demo", required=True, help="<demonstrator body>_<task>, e.g. stickman_run")
+    parser.add_argument("--view", default="side", choices=envs.VIEWS, help="camera of the demo")
+    parser.add_argument("--run", default="runs/walker_state_cpu_s0", help="the phase-1 run (train.py) whose world model is used")
+    parser.add_argument("--data", default=None, help="data folder with demos/ and D_body (default: the run's)")
+    add_config_flags(parser, cls, presets)
+    return parser
+
+
+def main():
+    args = cell_parser("Baseline GenRL: a task policy in the frozen world model's imagination, rewarded by latent similarity to a demo.",
+                       GenRLConfig, PRESETS).parse_args()
+    run_cell(args.run, args.demo, args.view, config_from_args(GenRLConfig, PRESETS, args), args.data)
+
+
+if __name__ == "__main__":
+    try:
+        main()
+    except (ValueError, FileNotFoundError) as error:  # bad input: one line naming the problem, no traceback
+        raise SystemExit(f"error: {error}")
