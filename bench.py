@@ -68,7 +68,7 @@ def component_updates(preset="cpu", obs_dim=24, action_dim=6, p_dim=64):
     obs_shape = obs_dim if cfg["wm"].obs == "state" else (64, 64, 3)
     wm = W.WorldModel(cfg["wm"], obs_shape, action_dim)
     vae = goal_vae.GoalVAE(cfg["goal"], p_dim, cfg["wm"].deter, cfg["wm"].stoch)
-    dist_net = distance.DistanceNet(cfg["dist"], wm.feat_dim)
+    dist_net = distance.DistanceNet(cfg["dist"], wm.feat_dim, wm.decoder if cfg["dist"].input == "obs" else None)
     actor = policy.Actor(cfg["ac"], wm.feat_dim, wm.feat_dim, action_dim)
     critic, slow_critic = policy.make_critics(cfg["ac"], wm.feat_dim, wm.feat_dim)
     return_norm = policy.ReturnNorm(cfg["ac"].return_norm_decay)

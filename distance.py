@@ -26,7 +26,15 @@ With `encoder_goals` (default) every pair is scored twice, with the later state 
 feat_j and as the goal encoder's g_j of the same frame, against the same Eq. 6 target. The posterior's h_t also
 carries the episode's history, which lets d answer "same trajectory?" instead of "how far?"; g_j is read from an
 8-frame video window and has no such shortcut. contrastive_weight 0.1 (LEXA's share of negatives) in the cpu
-preset: with the paper's equal weight the negatives dominate the loss (docs/experiments.md).
+preset: with the paper's equal weight the negatives dominate the loss.
+
+What d reads (ours, `input`). Even with encoder goals, d read from the full state [h, z] learnt "same trajectory or
+not" and almost nothing of "how far": on a walker run, d of encoder goals 1 / 5 / 15 / 30 steps ahead stayed at
+0.35-0.40 while another episode's frames gave 0.7-0.9. In imagination, h continues the start state's history, so
+every near goal looked reached from the first step and -d did not change with what the policy did. LEXA reads an
+embedding of the observation; `input = "obs"` does the same with the world model's own decoder: d reads the decoded
+observation (symlog of the state vector) of s and of g, which holds the body's pose and velocities and no history.
+`input = "feat"` is Eq. 7 as written, on [h, z].
 """
 from dataclasses import dataclass
 
@@ -43,25 +51,35 @@ class DistanceConfig:
     pairs: int = 1024  # candidate pairs of each kind (same / different trajectory) per batch (ours)
     contrastive_weight: float = 1.0  # Eq. 7 weighs both expectations equally (LEXA's 10% negatives ~ 0.11)
     encoder_goals: int = 1  # 1: also fit d(s_i, g_j) with g_j the goal encoder's goal of frame j (ours); 0: Eq. 7 alone
+    input: str = "feat"  # 'feat': d on the latent states [h, z] (Eq. 7); 'obs': on their decoded observations (ours, state obs)
     lr: float = 3e-4  # Adam (ours: the usual rate for a small MLP)
     grad_clip: float = 100.0  # global gradient norm, as the world model (Dreamer V1)
 
 
-PRESETS = {"smoke": dict(units=16, layers=2, pairs=64), "cpu": dict(contrastive_weight=0.1), "paper": dict()}
+PRESETS = {"smoke": dict(units=16, layers=2, pairs=64), "cpu": dict(contrastive_weight=0.1, input="obs"), "paper": dict()}
 
 
 class DistanceNet(nn.Module):
-    """d_{theta^dis}(s_i, s_j): an MLP on [feat_i, feat_j] -> predicted temporal distance in units of T."""
+    """d_{theta^dis}(s_i, s_j): an MLP on [embed(feat_i), embed(feat_j)] -> predicted temporal distance in units of T.
+    embed is the identity (cfg.input 'feat') or the world model's observation decoder ('obs'), held as a plain function:
+    it stays the world model's, trained by Eq. 2 only, and is not among this network's parameters or state."""
 
-    def __init__(self, cfg, feat_dim):
+    def __init__(self, cfg, feat_dim, decoder=None):
         super().__init__()
-        self.feat_dim = feat_dim
-        self.net = mlp(2 * feat_dim, cfg.units, 1, cfg.layers)
+        self.cfg, self.feat_dim = cfg, feat_dim
+        assert cfg.input in ("feat", "obs") and (cfg.input == "feat" or decoder is not None), (cfg.input, decoder)
+        self.embed = decoder.forward if cfg.input == "obs" else (lambda feat: feat)
+        in_dim = decoder[-1].out_features if cfg.input == "obs" else feat_dim
+        self.net = mlp(2 * in_dim, cfg.units, 1, cfg.layers)
+
+    def distance(self, x_i, x_j):
+        """d on embedded inputs: x_i, x_j (..., E) -> (...)."""
+        return self.net(torch.cat([x_i, x_j], -1)).squeeze(-1)
 
     def forward(self, feat_i, feat_j):
         """feat_i, feat_j (..., F) -> (...)."""
         assert feat_i.shape[-1] == feat_j.shape[-1] == self.feat_dim, (feat_i.shape, feat_j.shape)
-        return self.net(torch.cat([feat_i, feat_j], -1)).squeeze(-1)
+        return self.distance(self.embed(feat_i), self.embed(feat_j))
 
 
 def sample_pairs(episode, is_first, num, generator=None):
@@ -86,16 +104,17 @@ def distance_loss(dist_net, feat, pairs, horizon_T, contrastive_weight=1.0, goal
     encoder's goals of the same frames or None -> (loss, metrics). With goal_feat, each pair's later state is also
     given as its encoder goal (module docstring) and the loss is the mean of both. Inputs are detached: the distance
     network learns on the world model's states and goals, never shapes them."""
-    feat = feat.detach()
+    with torch.no_grad():  # embedded once per frame, not per pair; no gradient reaches the world model
+        x = dist_net.embed(feat)  # (B, T, E)
+        goals = {"": x} if goal_feat is None else {"": x, "_enc": dist_net.embed(goal_feat)}
     b, i, j = pairs["pos"]
     b1, t1, b2, t2 = pairs["neg"]
-    target = (j - i).to(feat.dtype) / horizon_T  # Eq. 6: D^dis(s_i, s_j) = (j - i) / T
-    goals = {"": feat} if goal_feat is None else {"": feat, "_enc": goal_feat.detach()}
+    target = (j - i).to(x.dtype) / horizon_T  # Eq. 6: D^dis(s_i, s_j) = (j - i) / T
     loss, metrics = 0.0, {}
     for name, goal in goals.items():
-        d_pos = dist_net(feat[b, i], goal[b, j])  # (P,)
+        d_pos = dist_net.distance(x[b, i], goal[b, j])  # (P,)
         regression = ((d_pos - target) ** 2).mean()
-        d_neg = dist_net(feat[b1, t1], goal[b2, t2])  # (Q,)
+        d_neg = dist_net.distance(x[b1, t1], goal[b2, t2])  # (Q,)
         contrastive = ((d_neg - 1) ** 2).sum() / max(len(d_neg), 1)  # + E ||d - 1||^2: Eq. 7 with its sign read as + (module docstring)
         loss = loss + (regression + contrastive_weight * contrastive) / len(goals)
         metrics.update({f"dist_regression{name}": regression.item(), f"dist_contrastive{name}": contrastive.item(),

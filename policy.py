@@ -90,7 +90,7 @@ class Actor(nn.Module):
         imagined step, so rollout computes it once (the first layer reads [feat, goal]: W [f; g] + b = W_f f + W_g g + b)."""
         assert goal.shape[-1] == self.goal_dim and goal.dim() == 2, goal.shape
         first = self.net[0]
-        return F.linear(goal, first.weight[:, -self.goal_dim :], first.bias)
+        return F.linear(goal, first.weight[:, first.in_features - self.goal_dim :], first.bias)
 
     def distribution(self, feat, goal, goal_in=None):
         """The Gaussian before the tanh: feat (N, F), goal (N, G) or (1, G) -> mean, std (N, A).

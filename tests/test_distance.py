@@ -7,9 +7,20 @@ from distance import DistanceConfig, DistanceNet, distance_loss, sample_pairs
 torch.set_num_threads(1)
 
 
-def stub_dist_net(feat_i, feat_j):
-    """A known 'network': d(s_i, s_j) = s_j[0] - s_i[0]."""
-    return feat_j[..., 0] - feat_i[..., 0]
+class StubDistanceNet:
+    """A known 'network': d(s_i, s_j) = s_j[0] - s_i[0], on unembedded states."""
+
+    @staticmethod
+    def embed(feat):
+        return feat
+
+    def distance(self, x_i, x_j):
+        return x_j[..., 0] - x_i[..., 0]
+
+    __call__ = distance
+
+
+stub_dist_net = StubDistanceNet()
 
 
 def test_eq7_on_a_hand_made_batch():
@@ -128,3 +139,17 @@ def test_encoder_goals_a_few_steps_ahead_score_better_than_another_trajectory_s(
         near, far = dist_net(feat[:, 0], goal[:, 2]), dist_net(feat[:, 0], goal[:, 10])
         other = dist_net(feat[:, 0], goal.roll(1, 0)[:, 2])
     assert near.mean() < far.mean() - 0.3 and near.mean() < other.mean() - 0.2, (near.mean(), far.mean(), other.mean())
+
+
+def test_obs_input_reads_the_decoded_observation_and_leaves_the_decoder_to_the_world_model():
+    import world_model as W
+
+    wm = W.WorldModel(W.WorldModelConfig(**W.PRESETS["smoke"]), 5, 2)
+    dist_net = DistanceNet(DistanceConfig(units=8, layers=1, input="obs"), wm.feat_dim, wm.decoder)
+    assert not any(n.startswith("embed") for n, _ in dist_net.named_parameters()) and len(list(dist_net.parameters())) == 4
+    feat_i, feat_j = torch.randn(3, wm.feat_dim), torch.randn(3, wm.feat_dim)
+    assert torch.allclose(dist_net(feat_i, feat_j), dist_net.net(torch.cat([wm.decoder(feat_i), wm.decoder(feat_j)], -1)).squeeze(-1))
+    feat = torch.randn(2, 4, wm.feat_dim)
+    pairs = sample_pairs(torch.arange(2), torch.zeros(2, 4, dtype=torch.bool), 16)
+    distance_loss(dist_net, feat, pairs, 4, 0.1, feat.flip(0))[0].backward()
+    assert all(p.grad is None for p in wm.parameters())  # Eq. 7 never trains the world model's decoder
