@@ -30,7 +30,6 @@ baseline run (load_cell, evaluate_actor, cell_rows, append_row, the config flags
 """
 import argparse
 import dataclasses
-import json
 import os
 import time
 
@@ -43,6 +42,8 @@ import envs
 import evaluate
 import imitate
 import policy
+import rundir
+import tables
 import train
 from video_encoder import check_same_encoder
 
@@ -183,10 +184,10 @@ def load_cell(run_dir, demo, view, data=None):
         cfgs["train"] = dataclasses.replace(cfgs["train"], data=data)
     tc = cfgs["train"]
     torch.set_num_threads(tc.threads)
-    folder = imitate.demo_folder(tc.data, demo, view)
+    folder = imitate.demo_folder(cfgs, demo, view)
     demos = collect.load_folder(folder, ("p",))
-    for k, d in enumerate(demos):
-        check_same_encoder(ckpt["encoder"], d["encoder"], os.path.join(folder, f"{k:02d}.npz"))
+    for d in demos:
+        check_same_encoder(ckpt["encoder"], d["encoder"], d["path"])
     demo_body, task = demo.rsplit("_", 1)
     envs._check_name("task", task, envs.TASKS)
     return {"run_dir": run_dir, "cfgs": cfgs, "models": models, "ckpt": ckpt, "device": device, "demo": demo, "view": view,
@@ -213,7 +214,7 @@ def result_config(cfg):
 
 def cell_rows(cell, method, config):
     """This cell's rows of `method` made with the same demos (their returns) and config, the latest per seed."""
-    return [r for r in imitate.load_results(cell["run_dir"]) if r["method"] == method and r["demo"] == cell["demo"]
+    return [r for r in tables.load_results(cell["run_dir"]) if r["method"] == method and r["demo"] == cell["demo"]
             and r["view"] == cell["view"] and r.get("demo_returns") == cell["demo_returns"] and r.get("config") == config]
 
 
@@ -222,8 +223,7 @@ def append_row(cell, method, seed, scores, seconds, config, **extra):
     row = {"agent": cell["cfgs"]["train"].env, "demo": cell["demo"], "view": cell["view"], "task": cell["task"], "setting": cell["setting"],
            "method": method, "seed": seed, "score": float(np.mean(scores)), "episode_scores": scores, "time": round(seconds, 1),
            "demo_returns": cell["demo_returns"], "config": config, **extra}
-    with open(os.path.join(cell["run_dir"], "results.jsonl"), "a") as f:
-        f.write(json.dumps(row) + "\n")
+    rundir.append_jsonl(os.path.join(cell["run_dir"], "results.jsonl"), row)
     return row
 
 
@@ -231,7 +231,7 @@ def report(cell, method, config, ran):
     """Prints the cell's score over all its finished seeds."""
     scores = [r["score"] for r in cell_rows(cell, method, config)]
     print(f"{method} {cell['cfgs']['train'].env} imitating {cell['demo']} ({cell['view']} view, {cell['setting']}): normalised score "
-          f"{np.mean(scores):.1f} +- {imitate.stderr(scores):.1f} over {len(scores)} seeds ({ran} run now); "
+          f"{np.mean(scores):.1f} +- {evaluate.stderr(scores):.1f} over {len(scores)} seeds ({ran} run now); "
           f"rows in {os.path.join(cell['run_dir'], 'results.jsonl')}")
 
 
@@ -252,7 +252,7 @@ def cell_parser(description, cls, presets):
     parser = argparse.ArgumentParser(description=description)
     parser.add_argument("--demo", required=True, help="<demonstrator body>_<task>, e.g. stickman_run")
     parser.add_argument("--view", default="side", choices=envs.VIEWS, help="camera of the demo")
-    parser.add_argument("--run", default="runs/walker_state_cpu_s0", help="the phase-1 run (train.py) whose world model is used")
+    parser.add_argument("--run", default=train.default_run_dir("walker", "cpu"), help="the phase-1 run (train.py) whose world model is used")
     parser.add_argument("--data", default=None, help="data folder with demos/ and D_body (default: the run's)")
     add_config_flags(parser, cls, presets)
     return parser

@@ -11,6 +11,7 @@ append_jsonl  one row, on a line of its own after such a cut line
 """
 import contextlib
 import dataclasses
+import fcntl
 import json
 import math
 import os
@@ -112,6 +113,7 @@ def append_jsonl(path, row):
     """Append one row. A last line without its newline (a kill) is completed if it is a whole row, as read_jsonl
     counts it, and dropped otherwise, so that the new row starts on a line of its own."""
     with open(path, "a+b") as f:
+        fcntl.flock(f, fcntl.LOCK_EX)  # one appender at a time (table shards in parallel processes), released on close
         f.seek(0)
         text = f.read()
         last = text[text.rfind(b"\n") + 1 :]
