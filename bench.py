@@ -174,7 +174,7 @@ def bench_ot():
     import ot_reward
 
     cpu = imitate.ImitateConfig()
-    for B, M in ((cpu.starts, envs.EPISODE_STEPS // cpu.demo_stride), (256, envs.EPISODE_STEPS)):
+    for B, M in ((cpu.starts, envs.EPISODE_STEPS), (256, envs.EPISODE_STEPS)):
         r = ot_reward.bench(B=B, T=15, M=M, K=10, D=512, repeat=2)
         print(f"OT reward      B={B} trajectories x T=15 against K=10 demos of M={M} frames (D=512): {1000 * r['whole_demo_s']:.0f} ms (windowed: {1000 * r['window_s']:.0f} ms)")
 

@@ -1,29 +1,26 @@
 """Eq. 1, upper level, and Eq. 5: freeze the policy, infer the goal from a demonstration of another body or camera.
 
 GIIL-ZS  g = goal encoder(p_T), p_T the last video feature of a demo (Sec. 4); each of the 10 demos
-         gives a goal, each goal one episode in the agent's own env with the task's true reward.
+         gives a goal, each goal eval_episodes episodes in the agent's own env with the task's true reward.
+GIIL-ZS (demo 0)  the first demo's zero-shot goal, the goal GIIL-FT starts from, evaluated with GIIL-FT's evaluation
+         seeds: GIIL-FT minus this column is what finetuning itself adds.
 GIIL-FT  from the first demo's zero-shot goal, g is optimised by L_GI (Eq. 5): imagined rollouts of the
          frozen policy pi(a | s, g), per-step OT reward between the goal decoder's features of the imagined
          states and the demos (ot_reward.py), a value V_ot(s) trained on TD(lambda) targets of that reward,
          and the lambda-returns maximised through the dynamics with respect to g only. With
          `--finetune-policy 1`, psi is finetuned jointly by L_MG (Eq. 4) with g among its goals (Sec. 4, last
-         paragraph): stop-gradients keep g out of L_MG and psi out of L_GI. 3 seeds.
+         paragraph): stop-gradients keep g out of L_MG and psi out of L_GI. `seeds` seeds.
 
-Deviations (measured in README, Phase 2): g's gradient flows through the OT rewards of the lambda-returns as well
-as through V_ot (`--value-only 1`: V_ot alone, as Eq. 5 writes it); psi stays frozen by default (joint finetuning
-made the agent fall in episodes where the frozen policy did not).
+Deviations (measured in docs/experiments.md, Phase 2): g's gradient flows through the OT rewards of the lambda-returns
+as well as through V_ot (`--value-only 1`: V_ot alone, as Eq. 5 writes it); psi stays frozen by default (joint
+finetuning made the agent fall in episodes where the frozen policy did not).
 
-Choices where the paper is silent (README, "Deviations"):
-* start states of the goal-inference imagination: `--starts-from demo` (default) maps demo features into
-  the latent space with the goal encoder q(s | p_t), Eq. 5's D_demo o q_phi read as embodiment-agnostic
-  start states, and matches the imagined steps against the demo frames that follow (ot_reward's windowed
-  matching); `body` draws them from the world model's posterior on D_body segments: states the agent can
-  be in, from which the policy must perform the task (our first default; worse in README's measurements).
-* what g is: `--goal-space latent` (default) optimises g itself; `feature` a video feature p with g = q(s | p).
-* a segment against a 500-step demo: whole-demo OT (ot_reward.py) against every demo, the best one
-  counting (ROT); for speed, each update uses every `demo_stride`-th demo frame from a random offset
-  (the features are of 8-frame windows, so neighbouring frames are alike; the random offset keeps a
-  fixed stride from aliasing with a gait).
+Choices where the paper is silent:
+* start states of the goal-inference imagination: demo features mapped into the latent space by the goal encoder
+  q(s | p_t), Eq. 5's D_demo o q_phi read as embodiment-agnostic start states; the imagined steps are matched against
+  the demo frames that follow (ot_reward's windowed matching). Two other choices measured worse and were removed
+  (docs/experiments.md): D_body posterior start states, and optimising a video feature p with g = q(s | p).
+* a segment against a 500-step demo: whole-demo OT (ot_reward.py) against every demo, the best one counting (ROT).
 
     python imitate.py --demo stickman_run [--view side|diagonal] [--run runs/<name> | --env walker|stickman] [--preset P] [--finetune]
     python imitate.py --table [--run runs/<name>]        (tables.py)
@@ -38,7 +35,6 @@ import time
 import cv2
 import numpy as np
 import torch
-import torch.nn.functional as F
 from tqdm import tqdm
 
 import collect
@@ -57,28 +53,25 @@ class ImitateConfig:
     preset: str = "cpu"
     steps: int = 300  # goal-finetuning updates (ours, cpu: ~3 min on 2 cores)
     starts: int = 64  # imagined trajectories per L_GI update (ours)
-    starts_from: str = "demo"  # 'demo' (Eq. 5's D_demo o q_phi) | 'body' (module docstring)
-    goal_lr: float = 3e-4  # Adam on g (ours; at 3e-3 the finetuned goals scored lower, README Phase 2)
-    goal_space: str = "latent"  # 'latent': g is the parameter (Eq. 5); 'feature': g = q(s | p) with the video feature p the parameter (ours, finetune_goal)
+    goal_lr: float = 3e-4  # Adam on g (ours; at 3e-3 the finetuned goals scored lower, docs/experiments.md)
     value_only: int = 0  # 1: Eq. 5 as written, g's gradient through V_ot alone; 0: through the OT rewards too (ours, goal_inference_loss)
     critic_warmup: int = 100  # first updates that train V_ot only, g held (ours): an untrained V_ot moves g at random
     critic_lr: float = 8e-5  # V_ot, as the phase-1 critic (Dreamer V1)
-    finetune_policy: int = 0  # 0: the policy stays exactly psi* (ours: joint finetuning made the agent fall, README); 1: psi jointly finetuned by L_MG (Sec. 4)
-    demo_stride: int = 5  # body starts: demo frames used per update, every 5th from a random offset (1 = all)
-    seeds: int = 3  # GIIL-FT seeds (Sec. 5)
-    eval_episodes: int = 1  # episodes per GIIL-ZS goal and per GIIL-FT seed
+    finetune_policy: int = 0  # 0: the policy stays exactly psi* (ours: joint finetuning made the agent fall); 1: psi jointly finetuned by L_MG (Sec. 4)
+    seeds: int = 5  # GIIL-FT seeds (the paper: 3; 5 so that FT vs ZS(demo 0) is measured beyond the noise)
+    eval_episodes: int = 3  # episodes per GIIL-ZS goal and per GIIL-FT seed
     eval_steps: int = envs.EPISODE_STEPS
     video: int = 1  # write demo | agent side-by-side videos
 
 
 PRESETS = {
-    "smoke": dict(steps=3, starts=8, seeds=2, eval_steps=10, demo_stride=1, critic_warmup=1),
+    "smoke": dict(steps=3, starts=8, seeds=2, eval_episodes=1, eval_steps=10, critic_warmup=1),
     "cpu": dict(),
-    "paper": dict(steps=2000, starts=256, demo_stride=1),
+    "paper": dict(steps=2000, starts=256),
 }
 
 
-CHOICES = {"preset": tuple(PRESETS), "starts_from": ("demo", "body"), "goal_space": ("latent", "feature")}
+CHOICES = {"preset": tuple(PRESETS)}
 
 
 def setting(agent_body, demo_body, view):
@@ -166,67 +159,50 @@ def checked_step(opt, loss, what, seed, update, clip=None):
 
 
 def finetune_goal(models, cfgs, ic, ot_cfg, p_goal, demo_p, seed, device, optim_states=None):
-    """GIIL-FT: optimise g (and psi by L_MG) for ic.steps updates from the zero-shot goal q(s | p_goal), p_goal (D,) the
-    first demo's last feature. Returns the final g (F,). optim_states: the phase-1 checkpoint's optimiser states, from
-    which L_MG's Adam continues (fresh Adam moments would make its first steps lr-sized on every weight).
-    goal_space 'latent' optimises g itself, as Eq. 5 writes it; 'feature' (ours) optimises a video feature p, from
-    p_goal, and feeds the policy g = q(s | p / |p|): g then stays among the goal encoder's outputs, the goals the policy
-    was trained to reach, instead of drifting into latent directions that only the imagination rewards."""
+    """GIIL-FT: optimise g (and psi by L_MG with --finetune-policy 1) for ic.steps updates from the zero-shot goal
+    q(s | p_goal), p_goal (D,) the first demo's last feature. Returns the final g (F,). optim_states: the phase-1
+    checkpoint's optimiser states, from which L_MG's Adam continues (fresh Adam moments would make its first steps
+    lr-sized on every weight)."""
     torch.manual_seed(seed)
     rng = np.random.default_rng(seed)
     ac = cfgs["ac"]
-    feat_dim = models["world_model"].feat_dim
-    critic_ot, slow_ot = policy.make_critics(ac, feat_dim, 0)
+    critic_ot, slow_ot = policy.make_critics(ac, models["world_model"].feat_dim, 0)
     critic_ot, slow_ot = critic_ot.to(device), slow_ot.to(device)
-    vae = models["goal_vae"]
     with torch.no_grad():
-        param = torch.nn.Parameter(vae.goal(p_goal).clone() if ic.goal_space == "latent" else p_goal.clone())
-
-    def current_goal():
-        if ic.goal_space == "latent":
-            return param
-        with policy.freeze(vae):  # the goal encoder is a constant: only p moves
-            return vae.goal(F.normalize(param, dim=-1))
-
-    opt_goal = torch.optim.Adam([param], lr=ic.goal_lr)
+        goal = torch.nn.Parameter(models["goal_vae"].goal(p_goal).clone())  # g0 = q(s | p_T): GIIL-ZS's goal
+    opt_goal = torch.optim.Adam([goal], lr=ic.goal_lr)
     opt_ot = torch.optim.Adam(critic_ot.parameters(), lr=ic.critic_lr)
-    opt_actor = torch.optim.Adam(models["actor"].parameters(), lr=ac.actor_lr)
-    opt_critic = torch.optim.Adam(models["critic"].parameters(), lr=ac.critic_lr)
-    if optim_states:  # deep copies: Adam steps its state in place, and every seed starts from the checkpoint's
-        opt_actor.load_state_dict(copy.deepcopy(optim_states["actor"]))
-        opt_critic.load_state_dict(copy.deepcopy(optim_states["critic"]))
-    segments = body_segments(cfgs)
-    demo_p = torch.as_tensor(np.stack([p[: min(len(q) for q in demo_p)] for p in demo_p]), device=device)  # (K, M, D)
-    M = demo_p.shape[1]
+    if ic.finetune_policy:
+        opt_actor = torch.optim.Adam(models["actor"].parameters(), lr=ac.actor_lr)
+        opt_critic = torch.optim.Adam(models["critic"].parameters(), lr=ac.critic_lr)
+        if optim_states:  # deep copies: Adam steps its state in place, and every seed starts from the checkpoint's
+            opt_actor.load_state_dict(copy.deepcopy(optim_states["actor"]))
+            opt_critic.load_state_dict(copy.deepcopy(optim_states["critic"]))
+        segments = body_segments(cfgs)
+    demo_p = torch.as_tensor(np.stack(demo_p), device=device)  # (K, M, D): one collection, every demo of one length
+    K, M = demo_p.shape[:2]
     bar = tqdm(range(ic.steps), desc=f"GIIL-FT seed {seed}", leave=False)
     for step in bar:
-        # fresh D_body segments every update, as in phase 1: L_MG goes on training on all of D_body
-        pool, bc = body_pool(models, cfgs, segments, rng, device, cfgs["wm"].batch)
-        body_goals = models["world_model"].feat(pool)
-        index = torch.randint(len(pool["deter"]), (ic.starts,), device=device)
-        body_start = {k: v[index] for k, v in pool.items()}
-        if ic.starts_from == "body":
-            first = int(rng.integers(ic.demo_stride))
-            start, offsets, demo = body_start, None, demo_p[:, first :: ic.demo_stride]
-        else:  # goal-encoder states of demo frames t0, matched against the frames that follow
-            t0 = torch.randint(M - ac.horizon - 1, (ic.starts,), device=device)
-            with torch.no_grad():
-                start = models["goal_vae"].encode(demo_p[torch.randint(len(demo_p), (ic.starts,)), t0])
-            start, offsets, demo = {k: start[k] for k in ("deter", "stoch", "mean", "std")}, t0 + 1, demo_p
-        goal = current_goal()
-        gi_loss, ot_loss, metrics = goal_inference_loss(models, critic_ot, slow_ot, goal, start, demo, cfgs, ot_cfg, offsets, ic.value_only)
+        # Eq. 5's start states: goal-encoder states of demo frames t0, matched against the frames that follow
+        t0 = torch.randint(M - ac.horizon - 1, (ic.starts,), device=device)
+        with torch.no_grad():
+            start = models["goal_vae"].encode(demo_p[torch.randint(K, (ic.starts,), device=device), t0])
+        start = {k: start[k] for k in ("deter", "stoch", "mean", "std")}
+        gi_loss, ot_loss, metrics = goal_inference_loss(models, critic_ot, slow_ot, goal, start, demo_p, cfgs, ot_cfg, t0 + 1, ic.value_only)
         warming_up = step < ic.critic_warmup
         for opt, loss, what in [(opt_ot, ot_loss, "V_ot loss")] if warming_up else [(opt_goal, gi_loss, "Eq. 5 L_GI"), (opt_ot, ot_loss, "V_ot loss")]:
             checked_step(opt, loss, what, seed, step)
         policy.ema_update(slow_ot, critic_ot, ac.slow_critic_rate)
-        if ic.finetune_policy:
-            a_loss, c_loss, _ = multi_goal_loss(models, body_start, goal, body_goals, bc, cfgs)
+        if ic.finetune_policy:  # fresh D_body segments every update, as in phase 1: L_MG goes on training on all of D_body
+            pool, bc = body_pool(models, cfgs, segments, rng, device, cfgs["wm"].batch)
+            index = torch.randint(len(pool["deter"]), (ic.starts,), device=device)
+            body_start = {k: v[index] for k, v in pool.items()}
+            a_loss, c_loss, _ = multi_goal_loss(models, body_start, goal, models["world_model"].feat(pool), bc, cfgs)
             for opt, loss, what in ((opt_actor, a_loss, "Eq. 4 actor loss"), (opt_critic, c_loss, "Eq. 4 critic loss")):
                 checked_step(opt, loss, what, seed, step, ac.grad_clip)
             policy.ema_update(models["slow_critic"], models["critic"], ac.slow_critic_rate)
         bar.set_postfix(ot=f"{metrics['ot_reward']:.4f}")
-    with torch.no_grad():
-        return current_goal().detach()
+    return goal.detach()
 
 
 def write_video(path, demo_frames, agent_frames):
@@ -259,20 +235,21 @@ def imitate(run_dir, demo, view, finetune, ic, zero_shot=True):
     demo_returns = [round(d["return"], 3) for d in demos]  # identifies this D_demo: --table ignores rows of older demos
     where = setting(tc.env, demo_body, view)
     ot_cfg = ot_reward.OTConfig(**ot_reward.PRESETS[ic.preset])
-    env = envs.make_env(tc.env, task)
     out_dir = os.path.join(run_dir, "imitate")
     os.makedirs(out_dir, exist_ok=True)
     results_path = os.path.join(run_dir, "results.jsonl")
     rows = []
 
     def evaluate_goal(method, seed, goal, video_demo):
-        scores = []
-        for e in range(ic.eval_episodes):
-            render = bool(ic.video) and e == 0
-            returns, frames = evaluate.run_episodes([env], models, goal[None], ic.eval_steps, cfgs["wm"].obs, 20_000 + 100 * seed + e, render)
-            scores.append(evaluate.episode_score(task, returns[0], ic.eval_steps))
-            if render:
-                write_video(os.path.join(out_dir, f"{demo}_{view}_{method}_s{seed}.mp4"), video_demo, frames[0])
+        """eval_episodes episodes at once with goal (F,), environment seeds 20000 + 100 seed + e: GIIL-FT seed s and
+        GIIL-ZS (demo 0) seed s meet the same start states. Seed 0's first episode is written as a video."""
+        render = bool(ic.video) and seed == 0
+        env_list = [envs.make_env(tc.env, task) for _ in range(ic.eval_episodes)]
+        returns, frames = evaluate.run_episodes(env_list, models, goal[None].expand(ic.eval_episodes, -1), ic.eval_steps,
+                                                cfgs["wm"].obs, 20_000 + 100 * seed, render)
+        scores = [evaluate.episode_score(task, r, ic.eval_steps) for r in returns]
+        if render:
+            write_video(os.path.join(out_dir, f"{demo}_{view}_{method.replace(' ', '_')}_s{seed}.mp4"), video_demo, frames[0])
         row = {"agent": tc.env, "demo": demo, "view": view, "task": task, "setting": where, "method": method, "seed": seed,
                "score": float(np.mean(scores)), "episode_scores": scores, "time": round(time.time() - t0, 1), "demo_returns": demo_returns,
                "config": tables.result_config(ic, method)}
@@ -288,16 +265,17 @@ def imitate(run_dir, demo, view, finetune, ic, zero_shot=True):
         psi_star = {k: {n: t.clone() for n, t in m.state_dict().items()} for k, m in models.items()}  # clones: optimisers step in place
         for seed in range(ic.seeds):
             t0 = time.time()
+            evaluate_goal("GIIL-ZS (demo 0)", seed, goals[0], demos[0]["pixels"])
             for k, m in models.items():  # each seed starts from psi*
                 m.load_state_dict(psi_star[k])
             goal = finetune_goal(models, cfgs, ic, ot_cfg, torch.as_tensor(demos[0]["p"][-1], device=device), [d["p"] for d in demos], seed, device,
                                  ckpt.get("optims"))
             evaluate_goal("GIIL-FT", seed, goal, demos[0]["pixels"])
-    for method in ("GIIL-ZS", "GIIL-FT"):
+    for method in tables.METHODS:
         scores = [r["score"] for r in rows if r["method"] == method]
-        if not scores:
-            continue
-        print(f"{method} {tc.env} imitating {demo} ({view} view, {where}): normalised score {np.mean(scores):.1f} +- {evaluate.stderr(scores):.1f} over {len(scores)} {'demos' if method == 'GIIL-ZS' else 'seeds'}")
+        if scores:
+            print(f"{method} {tc.env} imitating {demo} ({view} view, {where}): normalised score {np.mean(scores):.1f} +- "
+                  f"{evaluate.stderr(scores):.1f} over {len(scores)} {'demos' if method == 'GIIL-ZS' else 'seeds'} x {ic.eval_episodes} episodes")
     print(f"appended to {results_path}; videos in {out_dir}")
     return rows
 
@@ -312,6 +290,7 @@ def main():
     parser.add_argument("--finetune", action="store_true", help="also GIIL-FT: finetune the goal (Eq. 5), 3 seeds")
     parser.add_argument("--table", action="store_true", help="all settings x tasks for this agent; keeps finished cells")
     parser.add_argument("--settings", default=",".join(envs.SETTINGS), help="with --table: the settings to run now, comma-separated")
+    parser.add_argument("--shard", default="0/1", metavar="I/N", help="with --table: run only cells I, I + N, ... of the 16 (N processes, one table)")
     for field in dataclasses.fields(ImitateConfig):
         parser.add_argument("--" + field.name.replace("_", "-"), type=type(field.default), default=None,
                             choices=CHOICES.get(field.name), help=f"default {field.default!r}, or the preset's")
@@ -326,7 +305,12 @@ def main():
         unknown = [w for w in settings if w not in envs.SETTINGS]
         if unknown:
             parser.error(f"unknown setting(s) {', '.join(unknown)}: choose from {', '.join(envs.SETTINGS)}")
-        tables.table(run, ic, settings)
+        try:
+            shard = tuple(int(x) for x in args.shard.split("/"))
+            assert len(shard) == 2 and 0 <= shard[0] < shard[1]
+        except (ValueError, AssertionError):
+            parser.error(f"--shard {args.shard}: pass I/N with 0 <= I < N, e.g. 0/4")
+        tables.table(run, ic, settings, shard=shard)
     elif args.demo:
         imitate(run, args.demo, args.view, args.finetune, ic)
     else:

@@ -16,6 +16,8 @@ import train
 from envs import SETTINGS
 
 
+METHODS = ("GIIL-ZS", "GIIL-ZS (demo 0)", "GIIL-FT")  # a cell's columns; GIIL-ZS (demo 0) is the goal GIIL-FT starts from
+
 # The paper's normalised scores (GIIL-ZS, GIIL-FT) for comparison: Tables 1-2 ("all") and 4-11 (per task)
 PAPER = {
     "walker": {"all": [(42.52, 68.10), (32.97, 64.13), (19.47, 60.76), (18.09, 45.53)],
@@ -47,34 +49,44 @@ def load_results(run_dir):
 
 
 def result_config(ic, method):
-    """The ImitateConfig fields a result depends on: evaluation for GIIL-ZS, and finetuning too for GIIL-FT."""
+    """The ImitateConfig fields a result depends on: evaluation for the zero-shot columns, finetuning too for GIIL-FT."""
     fields = dataclasses.asdict(ic)
-    keep = ("eval_episodes", "eval_steps") if method == "GIIL-ZS" else tuple(k for k in fields if k not in ("seeds", "video"))
+    keep = ("eval_episodes", "eval_steps") if method.startswith("GIIL-ZS") else tuple(k for k in fields if k not in ("seeds", "video"))
     return {k: fields[k] for k in keep}
 
 
-def table(run_dir, ic, settings=SETTINGS, demos_per_cell=10):
-    """Every setting x task for this agent, GIIL-ZS and GIIL-FT; runs only the cells missing from results.jsonl.
-    `settings` limits which settings run now (the tables show every finished cell). A row counts only if it was
-    made with the demos now on disk (their returns match) and with the settings asked
-    for (result_config): regenerating D_demo or changing a setting makes the cells run again instead of mixing
-    old and new results."""
+def cells(agent):
+    """Every (task, setting) of an agent's table, in a fixed order (what --shard splits)."""
+    return [(task, where) for task in envs.TASKS for where in SETTINGS]
+
+
+def table(run_dir, ic, settings=SETTINGS, demos_per_cell=10, shard=(0, 1)):
+    """Every setting x task for this agent, GIIL-ZS, GIIL-ZS (demo 0) and GIIL-FT; runs only what is missing from
+    results.jsonl. `settings` limits which settings run now, shard (i, N) runs only the cells i, i + N, i + 2N, ... of
+    `cells` (N processes or machines share one table: rows are appended under a lock, one row per evaluation, and a
+    cell's rows are told apart by method and seed, so shards merge without loss or duplicates); the tables show every
+    finished cell. A row counts only if it was made with the demos now on disk (their returns match) and with the
+    settings asked for (result_config): regenerating D_demo or changing a setting makes the cells run again instead
+    of mixing old and new results."""
     import imitate  # the cells it runs (imitate.py imports this module)
 
     rundir.check_flags(ic)
     cfgs = train.load_run(run_dir)[0]
     agent, current = cfgs["train"].env, []
-    for task in envs.TASKS:
-        for where in SETTINGS:
-            demo, view = demo_of(agent, task, where)
-            returns = [round(e["return"], 3) for e in collect.load_folder(imitate.demo_folder(cfgs, demo, view), ())]
-            cell = lambda: [r for r in load_results(run_dir) if r["demo"] == demo and r["view"] == view and r.get("demo_returns") == returns
-                            and r.get("config") == result_config(ic, r["method"])]
-            count = lambda m: sum(r["method"] == m for r in cell())
-            zs, ft = count("GIIL-ZS") < demos_per_cell, count("GIIL-FT") < ic.seeds
-            if (zs or ft) and where in settings:  # a setting left out runs nothing; its finished cells still count
-                imitate.imitate(run_dir, demo, view, ft, ic, zero_shot=zs)
-            current += cell()
+    for k, (task, where) in enumerate(cells(agent)):
+        demo, view = demo_of(agent, task, where)
+        run_now = where in settings and k % shard[1] == shard[0]  # a cell left out runs nothing; its finished rows still count
+        folder = imitate.demo_folder(cfgs, demo, view) if run_now else os.path.join(cfgs["train"].data, "demos", f"{demo}_{view}")
+        if not os.path.isdir(folder):
+            continue
+        returns = [round(e["return"], 3) for e in collect.load_folder(folder, ())]
+        cell = lambda: [r for r in load_results(run_dir) if r["demo"] == demo and r["view"] == view and r.get("demo_returns") == returns
+                        and r.get("config") == result_config(ic, r["method"])]
+        count = lambda m: len({r["seed"] for r in cell() if r["method"] == m})
+        zs, ft = count("GIIL-ZS") < demos_per_cell, min(count("GIIL-FT"), count("GIIL-ZS (demo 0)")) < ic.seeds
+        if (zs or ft) and run_now:
+            imitate.imitate(run_dir, demo, view, ft, ic, zero_shot=zs)
+        current += cell()
     text = markdown_tables(agent, current)
     path = os.path.join(run_dir, "tables.md")
     collect.atomic_write(path, lambda f: f.write(text.encode()))
@@ -87,16 +99,16 @@ def markdown_tables(agent, rows):
     def cell(scores):
         return f"{np.mean(scores):.1f} +- {evaluate.stderr(scores):.1f}" if scores else "-"
 
+    methods = METHODS
     out = []
     for task in ("all",) + envs.TASKS:
         title = f"{agent} agent, {'all tasks (as Table 1/2)' if task == 'all' else task}: normalised score, mean +- s.e."
-        out += [f"### {title}", "", "| setting | GIIL-ZS (ours) | GIIL-FT (ours) | GIIL-ZS (paper) | GIIL-FT (paper) |", "|---|---|---|---|---|"]
+        out += [f"### {title}", "", "| setting | " + " | ".join(f"{m} (ours)" for m in methods) + " | GIIL-ZS (paper) | GIIL-FT (paper) |",
+                "|---|" + "---|" * (len(methods) + 2)]
         pick = lambda m, ws: [r["score"] for r in rows if r["method"] == m and r["setting"] in ws and (task == "all" or r["task"] == task)]
-        for k, where in enumerate(SETTINGS):
-            zs, ft = PAPER[agent][task][k]
-            out.append(f"| {where} | {cell(pick('GIIL-ZS', [where]))} | {cell(pick('GIIL-FT', [where]))} | {zs:.2f} | {ft:.2f} |")
-        for name, ws in (("Average", SETTINGS), ("Average w/o SE-SV", SETTINGS[1:])):
+        # "w/o SE-SV" the paper's way: the mean over the other three settings' results
+        for name, ws in [(w, [w]) for w in SETTINGS] + [("Average", SETTINGS), ("Average w/o SE-SV", SETTINGS[1:])]:
             paper = [np.mean([PAPER[agent][task][SETTINGS.index(w)][m] for w in ws]) for m in (0, 1)]
-            out.append(f"| {name} | {cell(pick('GIIL-ZS', ws))} | {cell(pick('GIIL-FT', ws))} | {paper[0]:.2f} | {paper[1]:.2f} |")
+            out.append(f"| {name} | " + " | ".join(cell(pick(m, ws)) for m in methods) + f" | {paper[0]:.2f} | {paper[1]:.2f} |")
         out.append("")
     return "\n".join(out)

@@ -28,11 +28,25 @@ def test_table_keeps_finished_cells(smoke_run, tmp_path):
         f.write("".join(json.dumps(r) + "\n" for r in rows))
     tables.table(run, SMOKE, demos_per_cell=2)
     new = [json.loads(line) for line in open(os.path.join(run, "results.jsonl")).read().splitlines()[len(lines):]]
-    assert {(r["demo"], r["view"]) for r in new} == {("walker_stand", "side")} and len(new) == 2 + SMOKE.seeds
+    assert {(r["demo"], r["view"]) for r in new} == {("walker_stand", "side")} and len(new) == 2 + 2 * SMOKE.seeds
     # other finetuning settings: the GIIL-FT cells run again, no GIIL-ZS cell does; only in the settings asked for
     before = len(open(os.path.join(run, "results.jsonl")).read().splitlines())
     tables.table(run, dataclasses.replace(SMOKE, goal_lr=1e-4), settings=("CE-CV",), demos_per_cell=2)
     new = [json.loads(line) for line in open(os.path.join(run, "results.jsonl")).read().splitlines()[before:]]
-    assert {(r["method"], r["setting"]) for r in new} == {("GIIL-FT", "CE-CV")} and len(new) == 4 * SMOKE.seeds
+    assert {(r["method"], r["setting"]) for r in new} == {("GIIL-FT", "CE-CV"), ("GIIL-ZS (demo 0)", "CE-CV")} and len(new) == 4 * 2 * SMOKE.seeds
     text = open(os.path.join(run, "tables.md")).read()
     assert "| SE-SV | " in text and "| SE-SV | - |" not in text  # the zero-shot cells still fill the other settings
+
+
+def test_shards_together_make_the_whole_table_once(smoke_run, tmp_path):
+    run = str(tmp_path / "run")
+    shutil.copytree(smoke_run, run, ignore=shutil.ignore_patterns("results.jsonl"))
+    tables.table(run, SMOKE, demos_per_cell=2, shard=(0, 3))
+    first = {(r["demo"], r["view"]) for r in tables.load_results(run)}
+    assert len(first) == 6  # cells 0, 3, ..., 15 of 16
+    for i in (1, 2):
+        tables.table(run, SMOKE, demos_per_cell=2, shard=(i, 3))
+    rows = [json.loads(line) for line in open(os.path.join(run, "results.jsonl"))]
+    keys = [(r["demo"], r["view"], r["method"], r["seed"]) for r in rows]
+    assert len(keys) == len(set(keys)) == 16 * (2 + 2 * SMOKE.seeds)  # every cell once, nothing twice
+    assert "| - |" not in open(os.path.join(run, "tables.md")).read().split("### ")[1]  # Table 1/2 filled
