@@ -203,13 +203,10 @@ def train(cfgs, run_dir, resume):
         return pretrain(cfgs, run_dir, resume)
 
 
-def pretrain(cfgs, run_dir, resume):
+def prepare_data(cfgs):
+    """D_body of the run (collected first where incomplete) and the body's own demos (the benchmark's goals):
+    -> encoder, training Segments, held-out episodes, (obs_shape, action_dim, p_dim)."""
     tc, wc = cfgs["train"], cfgs["wm"]
-    device = "cuda" if torch.cuda.is_available() else "cpu"
-    torch.set_num_threads(tc.threads)
-    # seeding: one block, everything from the run seed
-    torch.manual_seed(tc.seed)
-    rng = np.random.default_rng(tc.seed)
     folder = os.path.join(tc.data, tc.env)
     if not os.path.exists(os.path.join(folder, collect.COMPLETE)):  # missing, or a collection killed half-way
         print(f"D_body at {folder} is not complete: collecting what is missing (python collect.py --env {tc.env} --preset {tc.preset})")
@@ -223,39 +220,64 @@ def pretrain(cfgs, run_dir, resume):
     train_eps = [e for k, e in enumerate(episodes) if k % tc.holdout_every]
     data = Segments(train_eps, (wc.obs, "action", "is_first", "p"), wc.seq_len)
     obs_shape = episodes[0][wc.obs].shape[1] if wc.obs == "state" else (64, 64, 3)
-    action_dim, p_dim = episodes[0]["action"].shape[1], episodes[0]["p"].shape[1]
     print(f"D_body {folder}: {len(train_eps)} training + {len(held_out)} held-out episodes, {sum(data.lengths)} steps, features {encoder.name}")
+    return encoder, data, held_out, (obs_shape, episodes[0]["action"].shape[1], episodes[0]["p"].shape[1])
 
+
+def make_optimizers(models, cfgs):
+    """One Adam per trained model, and its gradient-norm clip."""
+    wc, ac, gc, dc = cfgs["wm"], cfgs["ac"], cfgs["goal"], cfgs["dist"]
+    lrs = {"world_model": wc.lr, "goal_vae": gc.lr, "dist_net": dc.lr, "actor": ac.actor_lr, "critic": ac.critic_lr}
+    clip = {"world_model": wc.grad_clip, "goal_vae": gc.grad_clip, "dist_net": dc.grad_clip, "actor": ac.grad_clip, "critic": ac.grad_clip}
+    return {name: torch.optim.Adam(models[name].parameters(), lr=lr) for name, lr in lrs.items()}, clip
+
+
+def restore(ckpt_path, config, models, optims, encoder, device):
+    """Load a checkpoint to resume from, after checking that it is the same run -> (update, numpy Generator)."""
+    ckpt = collect.load_checkpoint(ckpt_path, device)
+    changed = [f"{n}.{k}" for n in config for k in config[n] if k not in RESUMABLE and ckpt["config"][n].get(k) != config[n][k]]
+    if changed:
+        raise ValueError(f"{ckpt_path} was trained with other {', '.join(changed)}: pass the same flags to resume, or start a new run")
+    if config["train"]["steps"] < ckpt["step"]:
+        raise ValueError(f"--steps {config['train']['steps']} is below the update {ckpt['step']} of {ckpt_path}: pass --steps {ckpt['step']} or more")
+    check_same_encoder(ckpt["encoder"], encoder.name, ckpt_path)
+    for name, model in models.items():
+        model.load_state_dict(ckpt["models"][name])
+    for name, opt in optims.items():
+        opt.load_state_dict(ckpt["optims"][name])
+    torch.set_rng_state(ckpt["torch_rng"])
+    print(f"resumed {ckpt_path} at update {ckpt['step']}")
+    return ckpt["step"], collect.generator(ckpt["rng"])
+
+
+def final_report(run_dir, models, cfgs, held_out, device):
+    """After training: imagination on held-out D_body, the learning curve, the goal-reaching benchmark."""
+    wc = cfgs["wm"]
+    imagination = evaluate_imagination(models, cfgs, held_out, device)
+    collect.atomic_write(os.path.join(run_dir, "imagination.json"), lambda f: f.write(json.dumps(imagination, indent=1).encode()))
+    print(f"held-out D_body: goal decoder's cosine to the true p_t {imagination['posterior_p_cos']:.2f} on posterior states, "
+          f"{imagination['open_loop_p_cos']:.2f} on {wc.seq_len - wc.seq_len // 2} open-loop imagined steps (world-model error {imagination['open_loop']:.3f})")
+    print("wrote", evaluate.learning_curve(run_dir))
+    report_goal_reaching(run_dir, models, cfgs, device)
+
+
+def pretrain(cfgs, run_dir, resume):
+    tc, wc, ac = cfgs["train"], cfgs["wm"], cfgs["ac"]
+    device = "cuda" if torch.cuda.is_available() else "cpu"
+    torch.set_num_threads(tc.threads)
+    # seeding: one block, everything from the run seed
+    torch.manual_seed(tc.seed)
+    rng = np.random.default_rng(tc.seed)
+    encoder, data, held_out, (obs_shape, action_dim, p_dim) = prepare_data(cfgs)
     models = build_models(cfgs, obs_shape, action_dim, p_dim, device)
-    ac = cfgs["ac"]
-    optims = {
-        "world_model": torch.optim.Adam(models["world_model"].parameters(), lr=wc.lr),
-        "goal_vae": torch.optim.Adam(models["goal_vae"].parameters(), lr=cfgs["goal"].lr),
-        "dist_net": torch.optim.Adam(models["dist_net"].parameters(), lr=cfgs["dist"].lr),
-        "actor": torch.optim.Adam(models["actor"].parameters(), lr=ac.actor_lr),
-        "critic": torch.optim.Adam(models["critic"].parameters(), lr=ac.critic_lr),
-    }
-    clip = {"world_model": wc.grad_clip, "goal_vae": cfgs["goal"].grad_clip, "dist_net": cfgs["dist"].grad_clip, "actor": ac.grad_clip, "critic": ac.grad_clip}
+    optims, clip = make_optimizers(models, cfgs)
     ckpt_path = os.path.join(run_dir, "checkpoint.pt")
     config = {name: dataclasses.asdict(c) for name, c in cfgs.items()}
     step = 0
     if os.path.exists(ckpt_path):
         if not resume:
             raise ValueError(f"{ckpt_path} exists: pass --resume to continue that run, or another --seed for a new one")
-        ckpt = collect.load_checkpoint(ckpt_path, device)
-        changed = [f"{n}.{k}" for n in config for k in config[n] if k not in RESUMABLE and ckpt["config"][n].get(k) != config[n][k]]
-        if changed:
-            raise ValueError(f"{ckpt_path} was trained with other {', '.join(changed)}: pass the same flags to resume, or start a new run")
-        if tc.steps < ckpt["step"]:
-            raise ValueError(f"--steps {tc.steps} is below the update {ckpt['step']} of {ckpt_path}: pass --steps {ckpt['step']} or more")
-        check_same_encoder(ckpt["encoder"], encoder.name, ckpt_path)
-        for name, model in models.items():
-            model.load_state_dict(ckpt["models"][name])
-        for name, opt in optims.items():
-            opt.load_state_dict(ckpt["optims"][name])
-        step, rng = ckpt["step"], collect.generator(ckpt["rng"])
-        torch.set_rng_state(ckpt["torch_rng"])
-        print(f"resumed {ckpt_path} at update {step}")
+        step, rng = restore(ckpt_path, config, models, optims, encoder, device)
     rundir.trim_jsonl(os.path.join(run_dir, "metrics.jsonl"), step)  # rows a killed run logged after its checkpoint
 
     def save():
@@ -327,12 +349,7 @@ def pretrain(cfgs, run_dir, resume):
         if step % tc.checkpoint_every == 0 or step == tc.steps:
             saved = save()
     bar.close()
-    imagination = evaluate_imagination(models, cfgs, held_out, device)
-    collect.atomic_write(os.path.join(run_dir, "imagination.json"), lambda f: f.write(json.dumps(imagination, indent=1).encode()))
-    print(f"held-out D_body: goal decoder's cosine to the true p_t {imagination['posterior_p_cos']:.2f} on posterior states, "
-          f"{imagination['open_loop_p_cos']:.2f} on {wc.seq_len - wc.seq_len // 2} open-loop imagined steps (world-model error {imagination['open_loop']:.3f})")
-    print("wrote", evaluate.learning_curve(run_dir))
-    report_goal_reaching(run_dir, models, cfgs, device)
+    final_report(run_dir, models, cfgs, held_out, device)
     print(f"wrote {ckpt_path}, {run_dir}/metrics.jsonl")
     return run_dir
 

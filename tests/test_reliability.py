@@ -185,7 +185,8 @@ def test_phase_2_divergence_stops_before_writing_a_result(smoke_run, tmp_path, m
     monkeypatch.setattr(imitate, "goal_inference_loss", nan_loss)
     with pytest.raises(ValueError, match=r"GIIL-FT seed 0: Eq. 5 L_GI is nan at update 1: stopped"):
         imitate.imitate(run, "walker_run", "side", True, SMOKE_IMITATE, zero_shot=False)
-    assert not os.path.exists(os.path.join(run, "results.jsonl"))
+    rows = rundir.read_jsonl(os.path.join(run, "results.jsonl"))
+    assert [r["method"] for r in rows] == ["GIIL-ZS (demo 0)"]  # its zero-shot evaluation, written before; no GIIL-FT row
 
 
 # --- 4. every numeric flag is checked at start-up, naming the flag ---
