@@ -38,6 +38,7 @@ import genrl
 import imitate
 import ot_reward
 import policy
+import rundir
 import train
 from video_encoder import check_same_encoder, load_encoder
 from world_model import mlp
@@ -59,15 +60,11 @@ class AIMENoBConfig:
     eval_steps: int = envs.EPISODE_STEPS  # agent steps per evaluation episode
 
     def __post_init__(self):
-        for name in ("env_steps", "episode_steps", "updates", "starts", "seeds", "eval_episodes", "eval_steps"):
-            if getattr(self, name) < 1:
-                raise ValueError(f"--{name.replace('_', '-')} must be >= 1, got {getattr(self, name)}")
+        rundir.check_flags(self)
         if self.env_steps % self.episode_steps:
             raise ValueError(f"--env-steps {self.env_steps} is not a multiple of --episode-steps {self.episode_steps}: the budget is whole episodes")
-        if not 0 <= self.body_ratio < 1:
-            raise ValueError(f"--body-ratio {self.body_ratio} must be in [0, 1): the rest of each batch is the new episodes, which train the reward")
-        if not self.reward_sum > 0:
-            raise ValueError(f"--reward-sum must be > 0, got {self.reward_sum}")
+        if self.body_ratio == 1:
+            raise ValueError("--body-ratio 1: must be below 1, the rest of each batch is the new episodes, which train the reward")
 
 
 PRESETS = {

@@ -62,9 +62,7 @@ class GenRLConfig:
     eval_steps: int = envs.EPISODE_STEPS  # agent steps per evaluation episode
 
     def __post_init__(self):
-        for name in ("steps", "starts", "target_len", "align_window", "seeds", "eval_episodes", "eval_steps"):
-            if getattr(self, name) < 1:
-                raise ValueError(f"--{name.replace('_', '-')} must be >= 1, got {getattr(self, name)}")
+        rundir.check_flags(self)
         if self.align_window > self.target_len:
             raise ValueError(f"--align-window {self.align_window} is longer than --target-len {self.target_len}: pass a window <= the target")
 

@@ -37,7 +37,7 @@ def test_copy_of_a_demo_earns_the_most_and_is_matched_to_it():
 def test_bad_budgets_name_the_flag():
     with pytest.raises(ValueError, match=r"--env-steps 1200 is not a multiple of --episode-steps 500"):
         aime_nob.AIMENoBConfig(env_steps=1200)
-    with pytest.raises(ValueError, match=r"--body-ratio 1.0 must be in \[0, 1\)"):
+    with pytest.raises(ValueError, match=r"--body-ratio 1: must be below 1"):
         aime_nob.AIMENoBConfig(body_ratio=1.0)
 
 

@@ -55,7 +55,7 @@ def test_bad_windows_name_the_flag():
         genrl.GenRLConfig(align_window=20)
     with pytest.raises(ValueError, match=r"--align-window 8 is longer than the run's imagination horizon 5"):
         genrl.aligned_reward(torch.randn(1, 5, 3), torch.randn(10, 3), 8)
-    with pytest.raises(ValueError, match=r"--seeds must be >= 1, got 0"):
+    with pytest.raises(ValueError, match=r"--seeds 0: must be >= 1"):
         genrl.GenRLConfig(seeds=0)
 
 
