@@ -285,7 +285,7 @@ def main():
     parser.add_argument("--demo", help="<demonstrator body>_<task>, e.g. stickman_run")
     parser.add_argument("--view", default="side", choices=envs.VIEWS, help="camera of the demo")
     parser.add_argument("--run", help="the phase-1 run (train.py) whose agent imitates (default: the --env agent's run of this --preset, "
-                        "runs/<env>_<obs>_<preset>_s0)")
+                        "runs/<env>_<obs>_<preset>_s0, or else the shipped agents/<env>)")
     parser.add_argument("--env", choices=envs.BODIES, help="the agent's body, to pick the default --run (default walker)")
     parser.add_argument("--finetune", action="store_true", help="also GIIL-FT: finetune the goal (Eq. 5), 3 seeds")
     parser.add_argument("--table", action="store_true", help="all settings x tasks for this agent; keeps finished cells")
@@ -299,7 +299,7 @@ def main():
     ic = ImitateConfig(**{**PRESETS[given.get("preset", "cpu")], **given})
     if args.run and args.env:
         parser.error("--env only picks the default --run: pass one of them")
-    run = args.run or train.default_run_dir(args.env or "walker", ic.preset)
+    run = args.run or train.resolve_run(args.env or "walker", ic.preset)
     if args.table:
         settings = args.settings.split(",")
         unknown = [w for w in settings if w not in envs.SETTINGS]

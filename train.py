@@ -181,6 +181,35 @@ def load_run(run_dir, device="cpu"):
     return cfgs, models, ckpt
 
 
+AGENTS = "agents"  # the shipped phase-1 agents: agents/<body>/checkpoint.pt, weights only (export_agent)
+
+
+def export_agent(run_dir, out_dir):
+    """A trained run as a shipped agent: its models' weights (float16: half the size; they are cast back to float32 on
+    loading, and the benchmark of the exported agent is measured by loading it, `train.py --evaluate --run-dir`), its
+    config and shapes; no optimiser state or RNG. Loadable by load_run like any run."""
+    ckpt = collect.load_checkpoint(os.path.join(run_dir, "checkpoint.pt"))
+    half = lambda t: t.half() if t.is_floating_point() else t
+    agent = {k: ckpt[k] for k in ("config", "step", "encoder", "obs_shape", "action_dim", "p_dim")}
+    agent["models"] = {name: {k: half(t) for k, t in sd.items()} for name, sd in ckpt["models"].items()}
+    os.makedirs(out_dir, exist_ok=True)
+    path = os.path.join(out_dir, "checkpoint.pt")
+    collect.atomic_write(path, lambda f: torch.save(agent, f))
+    return path
+
+
+def resolve_run(env, preset):
+    """The run phase 2 uses when none is named: the user's own (runs/<env>_<obs>_<preset>_s0) when it exists, else the
+    shipped agent of that body (cpu preset only); says which."""
+    own = default_run_dir(env, preset)
+    shipped = os.path.join(AGENTS, env)
+    if not os.path.exists(os.path.join(own, "checkpoint.pt")) and preset == "cpu" and os.path.exists(os.path.join(shipped, "checkpoint.pt")):
+        print(f"using the shipped {env} agent {shipped} (no run of your own at {own}; `python train.py --env {env}` makes one)")
+        return shipped
+    print(f"using the run {own}")
+    return own
+
+
 def report_goal_reaching(run_dir, models, cfgs, device):
     """evaluate.goal_reaching, printed as a table and written to runs/<name>/goal_reaching.json."""
     tc = cfgs["train"]
@@ -360,6 +389,8 @@ def main():
     parser.add_argument("--evaluate", action="store_true", help="only the goal-reaching benchmark (evaluate.py) of the trained run")
     parser.add_argument("--obs", dest="wm.obs", choices=("state", "pixels"), default=None, help="world-model input (default: the preset's)")
     parser.add_argument("--run-dir", default=None, help="default runs/<env>_<obs>_<preset>_s<seed>")
+    parser.add_argument("--export", metavar="DIR", help="write the trained run (--run-dir) as a shipped agent DIR/checkpoint.pt "
+                        "(weights only, float16), then exit; e.g. agents/walker")
     parser.add_argument("--upgrade-checkpoint", metavar="PATH", help="rewrite a checkpoint of the older pickled format so that it "
                         "loads weights-only (unpickles it once: only for a file you trust), then exit")
     add_config_flags(parser)
@@ -372,7 +403,9 @@ def main():
     cfgs = resolve_configs(args, getattr(args, "train.preset") or "cpu")
     tc = cfgs["train"]
     run_dir = args.run_dir or default_run_dir(tc.env, tc.preset, tc.seed, cfgs["wm"].obs)
-    if args.evaluate:
+    if args.export:
+        print("wrote", export_agent(run_dir, args.export))
+    elif args.evaluate:
         device = "cuda" if torch.cuda.is_available() else "cpu"
         run_cfgs, models, _ = load_run(run_dir, device)
         torch.set_num_threads(tc.threads)

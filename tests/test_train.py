@@ -104,3 +104,21 @@ def test_command_line_runs_and_resumes(smoke_data, tmp_path):
     assert torch.load(os.path.join(run, "checkpoint.pt"), weights_only=True)["step"] == 8
     bad = subprocess.run(base[:3] + ["humanoid"], cwd=cwd, capture_output=True, text=True)
     assert bad.returncode != 0 and "valid body names are walker, stickman" in bad.stderr
+
+
+def test_exported_agent_loads_weights_only_and_acts_like_its_run(smoke_run, tmp_path, monkeypatch, capsys):
+    path = train.export_agent(smoke_run, str(tmp_path / "agents" / "walker"))
+    agent = torch.load(path, weights_only=True)
+    assert "optims" not in agent and all(t.dtype == torch.float16 for sd in agent["models"].values() for t in sd.values() if t.is_floating_point())
+    _, run_models, _ = train.load_run(smoke_run)
+    _, agent_models, _ = train.load_run(os.path.dirname(path))
+    for name, model in run_models.items():
+        for (k, a), b in zip(model.state_dict().items(), agent_models[name].state_dict().values()):
+            assert b.dtype == a.dtype and torch.allclose(a, b, rtol=1e-3, atol=1e-4), (name, k)
+    # phase 2's default: the user's own run when there is one, else the shipped agent, saying which
+    monkeypatch.chdir(tmp_path)
+    assert train.resolve_run("walker", "cpu") == os.path.join("agents", "walker")
+    assert "using the shipped walker agent agents/walker" in capsys.readouterr().out
+    os.makedirs(train.default_run_dir("walker", "cpu"))
+    shutil.copy(os.path.join(smoke_run, "checkpoint.pt"), train.default_run_dir("walker", "cpu"))
+    assert train.resolve_run("walker", "cpu") == train.default_run_dir("walker", "cpu")
