@@ -87,7 +87,7 @@ class GoalVAE(nn.Module):
         recon = self.cfg.kappa * (1 - cos)  # -log vMF(p_t; p_hat, kappa) + const
         # Ours: the decoder also reads sg(posterior) states, the states phase 2 decodes (Eq. 5's imagined rollouts).
         # Fit on encoder samples alone it read held-out walker posterior states at cos 0.59 to their p_t, 0.84 with
-        # this term (train.py's imagination.json; README, Phase 1).
+        # this term (train.py's imagination.json; docs/experiments.md, Ablations).
         post_cos = (self.decode(torch.cat([h, post["stoch"].detach()], -1)) * p).sum(-1)  # (B, T)
         loss = kl.mean() + deter_nll.mean() + recon.mean() + self.cfg.posterior_recon * self.cfg.kappa * (1 - post_cos).mean()
         metrics = {"goal_loss": loss.item(), "goal_kl": kl.mean().item(), "goal_deter_nll": deter_nll.mean().item(),

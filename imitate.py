@@ -123,7 +123,7 @@ def goal_inference_loss(models, critic_ot, slow_ot, goal, start, demo_p, cfgs, o
         value = slow_ot(feat, None)  # (N, H + 1): V_ot(s), differentiable in feat
         returns = policy.lambda_return(reward, value, ac.gamma, ac.lambda_)  # (N, H)
     # Eq. 5: -E[sum V], the lambda-returns standing for the values as in Dreamer V1; their rewards pass g's gradient
-    # through the dynamics and the goal decoder, where Eq. 5's V_ot alone gave a gradient too weak to follow (README)
+    # through the dynamics and the goal decoder, where Eq. 5's V_ot alone gave a gradient too weak to follow (docs/experiments.md)
     loss = -returns.mean()
     c_loss, c_metrics = policy.critic_loss(critic_ot, feat, None, returns)
     return loss, c_loss, {"L_GI": loss.item(), "ot_reward": reward.mean().item(), **{"ot_" + k: v for k, v in c_metrics.items()}}

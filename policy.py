@@ -54,20 +54,23 @@ class ActorCriticConfig:
 PRESETS = {
     "smoke": dict(units=16, actor_layers=2, critic_layers=2, horizon=5, starts=32),
     # ours: an update costs time linear in starts (~1 s for all 800 states of a 16x50 batch on one core)
-    # bc: on a CPU budget (~2k actor updates) Eq. 4 alone did not learn to reach goals (README, Deviations)
-    # bc_final: evaluation and GIIL-ZS give the goal of an episode's last frame (README, Phase 1)
-    # goal_near: goals the policy can reach inside the horizon, so -d(s, g) varies with what it does (README, Phase 1)
+    # bc: on a CPU budget (~2k actor updates) Eq. 4 alone did not learn to reach goals (docs/experiments.md, Ablations)
+    # bc_final: evaluation and GIIL-ZS give the goal of an episode's last frame (docs/experiments.md, Phase 1)
+    # goal_near: goals the policy can reach inside the horizon, so -d(s, g) can change with what it does (sample_goals)
     "cpu": dict(units=256, actor_layers=2, critic_layers=2, starts=256, actor_lr=3e-4, critic_lr=3e-4, bc=1.0, bc_final=0.5, goal_near=0.5),
     "paper": dict(units=1024, horizon=16, starts=48 * 48),  # GenRL: horizon 16, all states of a 48x48 batch (Mazzaglia et al. 2024)
 }
 
 
-def first_layer_with_goal(linear, feat, goal):
-    """linear([feat, goal]) with goal (N, G) broadcast over the time axes of feat (N, ..., F), computed as
-    W_f feat + (W_g goal + b): the goal's share once per goal, not once per step (W [f; g] + b = W_f f + W_g g + b)."""
-    F_ = feat.shape[-1]
-    goal_in = F.linear(goal, linear.weight[:, F_:], linear.bias)  # (N, units)
-    return F.linear(feat, linear.weight[:, :F_]) + goal_in.reshape(goal.shape[0], *[1] * (feat.dim() - 2), -1)
+def goal_share(linear, goal):
+    """W_g g + b of a first layer that reads [feat, goal] (W [f; g] + b = W_f f + W_g g + b): the same at every imagined
+    step, so computed once per goal, not once per step. goal (N, G) -> (N, units)."""
+    return F.linear(goal, linear.weight[:, linear.in_features - goal.shape[-1] :], linear.bias)
+
+
+def feat_share(linear, feat):
+    """W_f f of that layer: feat (..., F) -> (..., units)."""
+    return F.linear(feat, linear.weight[:, : feat.shape[-1]])
 
 
 def tanh_gaussian_log_prob(u, mean, std):
@@ -89,8 +92,7 @@ class Actor(nn.Module):
         """The goal's share of the first layer, W_g g + b: (N, G) or (1, G) -> (N, units). It is the same at every
         imagined step, so rollout computes it once (the first layer reads [feat, goal]: W [f; g] + b = W_f f + W_g g + b)."""
         assert goal.shape[-1] == self.goal_dim and goal.dim() == 2, goal.shape
-        first = self.net[0]
-        return F.linear(goal, first.weight[:, first.in_features - self.goal_dim :], first.bias)
+        return goal_share(self.net[0], goal)
 
     def distribution(self, feat, goal, goal_in=None):
         """The Gaussian before the tanh: feat (N, F), goal (N, G) or (1, G) -> mean, std (N, A).
@@ -98,9 +100,7 @@ class Actor(nn.Module):
         cfg = self.cfg
         assert feat.dim() == 2, feat.shape
         goal_in = self.goal_input(goal) if goal_in is None else goal_in
-        first = self.net[0]
-        x = F.linear(feat, first.weight[:, : first.in_features - self.goal_dim]) + goal_in  # (N, units)
-        mean, std = self.net[1:](x).chunk(2, -1)
+        mean, std = self.net[1:](feat_share(self.net[0], feat) + goal_in).chunk(2, -1)
         mean = cfg.mean_scale * torch.tanh(mean / cfg.mean_scale)
         std = (cfg.max_std - cfg.min_std) * torch.sigmoid(std + 2.0) + cfg.min_std  # Dreamer V3's bounded std
         return mean, std
@@ -128,7 +128,8 @@ class Critic(nn.Module):
         assert (goal is None) == (self.goal_dim == 0), "pass a goal exactly when goal_dim > 0"
         if goal is None:
             return self.net(feat).squeeze(-1)
-        return self.net[1:](first_layer_with_goal(self.net[0], feat, goal)).squeeze(-1)
+        goal_in = goal_share(self.net[0], goal).reshape(goal.shape[0], *[1] * (feat.dim() - 2), -1)  # over feat's time axes
+        return self.net[1:](feat_share(self.net[0], feat) + goal_in).squeeze(-1)
 
 
 class ReturnNorm(nn.Module):
@@ -203,7 +204,6 @@ def rollout(world_model, actor, start, goal, horizon):
     -> feat (N, H + 1, F) (index 0 = start), action (N, H, A), log_prob (N, H) of a_k at s_k."""
     start = {k: v.detach() for k, v in start.items()}
     log_probs = []
-
     goal_in = actor.goal_input(goal)  # once for all steps
 
     def policy_fn(feat):
