@@ -131,6 +131,8 @@ def learning_curve(run_dir):
                 ax.plot(*zip(*points), label=label)
         ax.set_title(title, fontsize=10)
         ax.set_xlabel("update")
+        if title == "losses":
+            ax.set_yscale("symlog")  # losses of different scales (the goal VAE's KL is in the hundreds)
         if ax.lines:
             ax.legend(fontsize=8)
     fig.tight_layout()
