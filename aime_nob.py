@@ -33,13 +33,13 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
+import collect
 import envs
 import genrl
 import imitate
 import ot_reward
 import policy
 import rundir
-import train
 from video_encoder import check_same_encoder, load_encoder
 from world_model import mlp
 
@@ -141,7 +141,7 @@ def train_seed(cell, nc, body, encoder, demo_p, seed):
         reward, best = episode_rewards(encoder(episode["pixels"]), demo_p, ot_cfg)
         scale = scale or nc.reward_sum / max(abs(float(reward.sum())), 1e-12)  # ROT: fixed once, on the first episode
         episodes.append({k: episode[k] for k in (wc.obs, "action", "is_first")} | {"reward": reward * scale})
-        online = train.Segments(episodes, (wc.obs, "action", "is_first", "reward"), wc.seq_len)
+        online = collect.Segments(episodes, (wc.obs, "action", "is_first", "reward"), wc.seq_len)
         for _ in range(nc.updates):
             batch, n_body, labels = mixed_batch(body, online, cfgs, nc.body_ratio, rng, device)
             wm_loss, metrics, post = wm.loss(batch)  # Eq. 2

@@ -232,6 +232,28 @@ def load_episode(path, keys=tuple(KEYS)):
     return episode
 
 
+class Segments:
+    """Random (B, T) segments of whole episodes (never crossing an episode's end), as torch tensors."""
+
+    def __init__(self, episodes, keys, seq_len):
+        lengths = np.array([len(e["is_first"]) for e in episodes])
+        if lengths.min() < seq_len:
+            raise ValueError(f"episodes of {lengths.min()} steps are shorter than the segment length {seq_len}: collect longer episodes or pass --wm-seq-len")
+        self.data = {k: np.concatenate([e[k] for e in episodes]) for k in keys}
+        self.starts = np.concatenate([[0], np.cumsum(lengths)[:-1]])
+        self.lengths, self.seq_len = lengths, seq_len
+
+    def sample(self, batch, rng, device):
+        episode = rng.integers(len(self.lengths), size=batch)
+        start = self.starts[episode] + (rng.random(batch) * (self.lengths[episode] - self.seq_len + 1)).astype(int)
+        index = start[:, None] + np.arange(self.seq_len)  # (B, T)
+        out = {k: torch.as_tensor(v[index], device=device) for k, v in self.data.items()}
+        out["episode"] = torch.as_tensor(episode, device=device)
+        if "p" in self.data:  # the feature of each segment's episode's last frame: hindsight goals (policy.bc_loss)
+            out["p_last"] = torch.as_tensor(self.data["p"][self.starts[episode] + self.lengths[episode] - 1], device=device)
+        return out
+
+
 def load_folder(folder, keys=tuple(KEYS), encoder=None):
     """All episodes of a folder, sorted by name. One collection only: features from two encoders, episodes of two
     lengths or arrays of two widths are an error naming both files."""

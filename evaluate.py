@@ -1,4 +1,4 @@
-"""Sec. 5 and Eq. 8: the agent in its real environment, and phase 1's goal-reaching benchmark.
+"""Sec. 5 and Eq. 8: the agent in its real environment, phase 1's goal-reaching benchmark, and its imagination checks.
 
 run_episodes acts with the frozen multi-task policy pi(a | s_t, g) in N environments at once (one batched world-model
 and actor call per step), s_t filtered online by the world model's posterior; the environments' true task rewards
@@ -13,6 +13,9 @@ is not in D_body (Sec. 5) and is reported on its own line, outside the average.
 
     python train.py --evaluate --run-dir runs/walker_state_cpu_s0   # writes runs/<name>/goal_reaching.json
     python evaluate.py runs/walker_state_cpu_s0 runs/walker_state_cpu_s1 runs/walker_state_cpu_s2   # over seeds
+
+evaluate_imagination (run by train.py at its end, imagination.json) measures what phase 2's OT reward rests on: how
+well the goal decoder reads posterior and open-loop imagined states of held-out D_body.
 """
 import json
 import os
@@ -56,6 +59,29 @@ def run_episodes(env_list, models, goals, steps, obs_key, seed, render=False, ra
         obs = np.stack([r[0] for r in results])
         total += [r[1] for r in results]
     return total, (np.stack(frames, 1) if render else None)
+
+
+@torch.no_grad()
+def open_loop_metrics(wm, vae, batch, context):
+    """Imagination quality: the world model's open-loop error (Eq. 2's decoder) and the cosine between the goal decoder's
+    features of the open-loop imagined states and the true p_t, what phase 2's OT reward reads (0 to 1, 1 = exact)."""
+    feats, keep = imagined = wm.open_loop(batch, context)  # imagined once, read by both decoders
+    cos = (vae.decode(feats) * batch["p"][:, context:]).sum(-1)[keep]
+    return {"open_loop": wm.open_loop_error(batch, context, imagined), "open_loop_p_cos": cos.mean().item() if len(cos) else float("nan")}
+
+
+@torch.no_grad()
+def evaluate_imagination(models, cfgs, held_out, device, segments=64):
+    """What phase 2's OT reward rests on, on held-out D_body segments (a fixed draw, so reruns compare): the goal
+    decoder's cosine to the true p_t on world-model posterior states, and open_loop_metrics."""
+    wc, wm, vae = cfgs["wm"], models["world_model"], models["goal_vae"]
+    seed = cfgs["train"].seed + 1
+    batch = collect.Segments(held_out, (wc.obs, "action", "is_first", "p"), wc.seq_len).sample(segments, np.random.default_rng(seed), device)
+    with torch.random.fork_rng(devices=[]):  # the posterior samples z: seeded here, the training RNG untouched
+        torch.manual_seed(seed)
+        post, _ = wm.observe(batch[wc.obs], batch["action"], batch["is_first"])
+        cos = (vae.decode(wm.feat(post)) * batch["p"]).sum(-1).mean().item()
+        return {"posterior_p_cos": cos, **open_loop_metrics(wm, vae, batch, wc.seq_len // 2)}
 
 
 def episode_score(task, episode_return, steps):

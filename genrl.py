@@ -118,7 +118,7 @@ def no_goal(n, device):
 
 def train_policy(models, cfgs, gc, target, segments, seed, device):
     """GenRL's task behaviour for one seed: gc.steps actor-critic updates in imagination from D_body segments
-    (train.Segments) -> the actor."""
+    (collect.Segments) -> the actor."""
     torch.manual_seed(seed)
     rng = np.random.default_rng(seed)
     ac, wc, wm = cfgs["ac"], cfgs["wm"], models["world_model"]

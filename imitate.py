@@ -90,10 +90,10 @@ def demo_folder(cfgs, demo, view):
 
 
 def body_segments(cfgs):
-    """D_body as train.Segments (the run's data folder and segment length): what L_MG keeps training on."""
+    """D_body as collect.Segments (the run's data folder and segment length): what L_MG keeps training on."""
     wc, tc = cfgs["wm"], cfgs["train"]
     keys = (wc.obs, "action", "is_first", "p")
-    return train.Segments(collect.load_folder(os.path.join(tc.data, tc.env), keys), keys, wc.seq_len)
+    return collect.Segments(collect.load_folder(os.path.join(tc.data, tc.env), keys), keys, wc.seq_len)
 
 
 def body_pool(models, cfgs, segments, rng, device, n=32):

@@ -40,7 +40,7 @@ class TrainConfig:
     seed: int = 0
     steps: int = 3000  # updates (ours, cpu: ~25 min on 2 cores; Dreamer-scale runs use ~1e5 and more)
     policy_start: int = 1000  # updates of the models before the actor-critic starts (ours)
-    holdout_every: int = 20  # every 20th D_body episode is held out of training, for evaluate_imagination
+    holdout_every: int = 20  # every 20th D_body episode is held out of training, for evaluate.evaluate_imagination
     eval_episodes: int = 3  # goal-reaching benchmark (evaluate.py): episodes per own-body demo goal
     eval_steps: int = 500  # agent steps per goal-reaching episode (a whole episode)
     log_every: int = 100
@@ -95,51 +95,6 @@ def default_run_dir(env, preset, seed=0, obs=None):
     """runs/<env>_<obs>_<preset>_s<seed> (obs: the preset's unless given): where train.py writes and imitate.py reads."""
     obs = obs or world_model.PRESETS[preset].get("obs", world_model.WorldModelConfig.obs)
     return os.path.join("runs", f"{env}_{obs}_{preset}_s{seed}")
-
-
-class Segments:
-    """Random (B, T) segments of whole episodes (never crossing an episode's end), as torch tensors."""
-
-    def __init__(self, episodes, keys, seq_len):
-        lengths = np.array([len(e["is_first"]) for e in episodes])
-        if lengths.min() < seq_len:
-            raise ValueError(f"episodes of {lengths.min()} steps are shorter than the segment length {seq_len}: collect longer episodes or pass --wm-seq-len")
-        self.data = {k: np.concatenate([e[k] for e in episodes]) for k in keys}
-        self.starts = np.concatenate([[0], np.cumsum(lengths)[:-1]])
-        self.lengths, self.seq_len = lengths, seq_len
-
-    def sample(self, batch, rng, device):
-        episode = rng.integers(len(self.lengths), size=batch)
-        start = self.starts[episode] + (rng.random(batch) * (self.lengths[episode] - self.seq_len + 1)).astype(int)
-        index = start[:, None] + np.arange(self.seq_len)  # (B, T)
-        out = {k: torch.as_tensor(v[index], device=device) for k, v in self.data.items()}
-        out["episode"] = torch.as_tensor(episode, device=device)
-        if "p" in self.data:  # the feature of each segment's episode's last frame: hindsight goals (policy.bc_loss)
-            out["p_last"] = torch.as_tensor(self.data["p"][self.starts[episode] + self.lengths[episode] - 1], device=device)
-        return out
-
-
-@torch.no_grad()
-def open_loop_metrics(wm, vae, batch, context):
-    """Imagination quality: the world model's open-loop error (Eq. 2's decoder) and the cosine between the goal decoder's
-    features of the open-loop imagined states and the true p_t, what phase 2's OT reward reads (0 to 1, 1 = exact)."""
-    feats, keep = imagined = wm.open_loop(batch, context)  # imagined once, read by both decoders
-    cos = (vae.decode(feats) * batch["p"][:, context:]).sum(-1)[keep]
-    return {"open_loop": wm.open_loop_error(batch, context, imagined), "open_loop_p_cos": cos.mean().item() if len(cos) else float("nan")}
-
-
-@torch.no_grad()
-def evaluate_imagination(models, cfgs, held_out, device, segments=64):
-    """What phase 2's OT reward rests on, on held-out D_body segments (a fixed draw, so reruns compare): the goal
-    decoder's cosine to the true p_t on world-model posterior states, and open_loop_metrics."""
-    wc, wm, vae = cfgs["wm"], models["world_model"], models["goal_vae"]
-    seed = cfgs["train"].seed + 1
-    batch = Segments(held_out, (wc.obs, "action", "is_first", "p"), wc.seq_len).sample(segments, np.random.default_rng(seed), device)
-    with torch.random.fork_rng(devices=[]):  # the posterior samples z: seeded here, the training RNG untouched
-        torch.manual_seed(seed)
-        post, _ = wm.observe(batch[wc.obs], batch["action"], batch["is_first"])
-        cos = (vae.decode(wm.feat(post)) * batch["p"]).sum(-1).mean().item()
-        return {"posterior_p_cos": cos, **open_loop_metrics(wm, vae, batch, wc.seq_len // 2)}
 
 
 def log_line(m):
@@ -247,7 +202,7 @@ def prepare_data(cfgs):
     episodes = collect.load_folder(folder, (wc.obs, "action", "is_first", "p"), encoder=encoder.name)
     held_out = episodes[:: tc.holdout_every]
     train_eps = [e for k, e in enumerate(episodes) if k % tc.holdout_every]
-    data = Segments(train_eps, (wc.obs, "action", "is_first", "p"), wc.seq_len)
+    data = collect.Segments(train_eps, (wc.obs, "action", "is_first", "p"), wc.seq_len)
     obs_shape = episodes[0][wc.obs].shape[1] if wc.obs == "state" else (64, 64, 3)
     print(f"D_body {folder}: {len(train_eps)} training + {len(held_out)} held-out episodes, {sum(data.lengths)} steps, features {encoder.name}")
     return encoder, data, held_out, (obs_shape, episodes[0]["action"].shape[1], episodes[0]["p"].shape[1])
@@ -282,7 +237,7 @@ def restore(ckpt_path, config, models, optims, encoder, device):
 def final_report(run_dir, models, cfgs, held_out, device):
     """After training: imagination on held-out D_body, the learning curve, the goal-reaching benchmark."""
     wc = cfgs["wm"]
-    imagination = evaluate_imagination(models, cfgs, held_out, device)
+    imagination = evaluate.evaluate_imagination(models, cfgs, held_out, device)
     collect.atomic_write(os.path.join(run_dir, "imagination.json"), lambda f: f.write(json.dumps(imagination, indent=1).encode()))
     print(f"held-out D_body: goal decoder's cosine to the true p_t {imagination['posterior_p_cos']:.2f} on posterior states, "
           f"{imagination['open_loop_p_cos']:.2f} on {wc.seq_len - wc.seq_len // 2} open-loop imagined steps (world-model error {imagination['open_loop']:.3f})")
@@ -368,7 +323,7 @@ def pretrain(cfgs, run_dir, resume):
         step += 1
         bar.update(1)
         if step % tc.log_every == 0 or step == tc.steps:
-            metrics.update(step=step, updates_per_s=tc.log_every / (time.time() - t0), **open_loop_metrics(wm, vae, data.sample(wc.batch, rng, device), wc.seq_len // 2))
+            metrics.update(step=step, updates_per_s=tc.log_every / (time.time() - t0), **evaluate.open_loop_metrics(wm, vae, data.sample(wc.batch, rng, device), wc.seq_len // 2))
             if wc.seq_len > 40:  # d at 1 / 5 / 15 / 30 steps ahead and for another segment (distance.distance_profile)
                 metrics.update(distance.distance_profile(dist_net, post_feat, goal_feat, batch["is_first"]))
             t0 = time.time()

@@ -8,6 +8,7 @@ import pytest
 import torch
 
 import collect
+import evaluate
 import train
 from conftest import train_args
 
@@ -27,8 +28,8 @@ def test_smoke_run_writes_checkpoint_metrics_and_goal_reaching(smoke_run):
     assert -1 <= imagination["posterior_p_cos"] <= 1 and -1 <= imagination["open_loop_p_cos"] <= 1
     cfgs, models, _ = train.load_run(smoke_run)
     held_out = collect.load_folder(os.path.join(cfgs["train"].data, "walker"), ("state", "action", "is_first", "p"))[:: cfgs["train"].holdout_every]
-    first = train.evaluate_imagination(models, cfgs, held_out, "cpu")
-    assert train.evaluate_imagination(models, cfgs, held_out, "cpu") == first  # a fixed draw: reruns compare
+    first = evaluate.evaluate_imagination(models, cfgs, held_out, "cpu")
+    assert evaluate.evaluate_imagination(models, cfgs, held_out, "cpu") == first  # a fixed draw: reruns compare
     assert first == pytest.approx(imagination, rel=0.05)
 
 
@@ -60,7 +61,7 @@ def test_nan_loss_stops_and_keeps_last_checkpoint(smoke_run, smoke_data, tmp_pat
 
 def test_segments_stay_inside_episodes(smoke_data):
     episodes = collect.load_folder(os.path.join(smoke_data, "walker"), ("state", "action", "is_first", "p"))
-    batch = train.Segments(episodes, ("state", "is_first"), 8).sample(200, np.random.default_rng(0), "cpu")
+    batch = collect.Segments(episodes, ("state", "is_first"), 8).sample(200, np.random.default_rng(0), "cpu")
     assert batch["state"].shape == (200, 8, 24)
     assert not batch["is_first"][:, 1:].any()  # an episode start can only open a segment
     for b in range(0, 200, 17):  # every segment is a slice of its own episode
