@@ -79,7 +79,7 @@ def test_target_longer_than_the_demo_is_an_error(smoke_run):
 
 def test_cell_end_to_end_and_resumable(smoke_run, tmp_path):
     run = str(tmp_path / "run")
-    shutil.copytree(smoke_run, run)
+    shutil.copytree(smoke_run, run, ignore=shutil.ignore_patterns("results.jsonl"))  # other tests' rows of the shared run
     rows = genrl.run_cell(run, "stickman_run", "diagonal", SMOKE)
     assert [r["seed"] for r in rows] == [0, 1]
     keys = {"agent", "demo", "view", "task", "setting", "method", "seed", "score", "episode_scores", "time", "demo_returns", "config"}
