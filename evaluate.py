@@ -44,11 +44,12 @@ def run_episodes(env_list, models, goals, steps, obs_key, seed, render=False, ra
     action = np.zeros((N, A), np.float32)
     state, total, frames = None, np.zeros(N), []
     for t in range(steps + 1):
-        if render or obs_key == "pixels":
+        if render or (obs_key == "pixels" and not random_actions):
             frames.append(np.stack([env.render() for env in env_list]))
-        o = torch.as_tensor(frames[-1] if obs_key == "pixels" else obs, device=device)[:, None]
-        post, _ = wm.observe(o, torch.as_tensor(action, device=device)[:, None], torch.full((N, 1), t == 0, device=device), state)
-        state = {k: v[:, -1] for k, v in post.items()}
+        if not random_actions:  # s_t, filtered by the world model from o_t and a_{t-1}
+            o = torch.as_tensor(frames[-1] if obs_key == "pixels" else obs, device=device)[:, None]
+            post, _ = wm.observe(o, torch.as_tensor(action, device=device)[:, None], torch.full((N, 1), t == 0, device=device), state)
+            state = {k: v[:, -1] for k, v in post.items()}
         if t == steps:
             break
         if random_actions:
