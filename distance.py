@@ -25,8 +25,8 @@ pairs alone cannot rank those: on a walker run it gave d = 0.64 / 0.62 / 0.63 / 
 With `encoder_goals` (default) every pair is scored twice, with the later state as the world model's posterior
 feat_j and as the goal encoder's g_j of the same frame, against the same Eq. 6 target. The posterior's h_t also
 carries the episode's history, which lets d answer "same trajectory?" instead of "how far?"; g_j is read from an
-8-frame video window and has no such shortcut. contrastive_weight 0.1 (LEXA's share of negatives) in the cpu
-preset: with the paper's equal weight the negatives dominate the loss.
+8-frame video window and has no such shortcut. contrastive_weight 0.1 in the cpu preset follows LEXA's share of
+negatives (not compared with the paper's equal weight here).
 
 What d reads (ours, `input`). Even with encoder goals, d read from the full state [h, z] learnt "same trajectory or
 not" and almost nothing of "how far": on a walker run, d of encoder goals 1 / 5 / 15 / 30 steps ahead stayed at
@@ -34,7 +34,7 @@ not" and almost nothing of "how far": on a walker run, d of encoder goals 1 / 5 
 every near goal looked reached from the first step and -d did not change with what the policy did. LEXA reads an
 embedding of the observation; `input = "obs"` does the same with the world model's own decoder: d reads the decoded
 observation (symlog of the state vector) of s and of g, which holds the body's pose and velocities and no history.
-`input = "feat"` is Eq. 7 as written, on [h, z].
+Measured, it ranked gaps no better than [h, z] (docs/experiments.md, Phase 1). `input = "feat"` is Eq. 7 as written.
 """
 from dataclasses import dataclass
 
