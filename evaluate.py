@@ -139,7 +139,7 @@ def write_goal_reaching(run_dir, scores):
 
 
 def learning_curve(run_dir):
-    """runs/<name>/learning_curve.png from metrics.jsonl: Eq. 4's imagined goal reward, Eq. 7's distances of encoder
+    """runs/<name>/learning_curve.png from metrics.jsonl: Eq. 4's imagined goal reward (both readings, policy.policy_losses), Eq. 7's distances of encoder
     goals 1 and 15 steps ahead, and the world model's and goal VAE's losses, against updates."""
     import matplotlib
 
@@ -148,7 +148,7 @@ def learning_curve(run_dir):
 
     rows = [json.loads(line) for line in open(os.path.join(run_dir, "metrics.jsonl"))]
     fig, axes = plt.subplots(1, 3, figsize=(13, 3.2))
-    series = [("Eq. 4 imagined goal reward -d(s, g)", [("reward", "reward")]),
+    series = [("Eq. 4 imagined goal reward", [("reward_distance", "-d(s, g)"), ("reward_feature", "cos(p_hat(s), p_hat(g))")]),
               ("Eq. 7: d(s_t, q(s | p_t+k))", [("d_enc", "k = 1", 0), ("d_enc", "k = 15", 2), ("d_enc", "other episode", 4)]),
               ("losses", [("wm_loss", "Eq. 2 world model"), ("goal_loss", "Eq. 3 goal VAE"), ("bc_loss", "hindsight BC")])]
     for ax, (title, keys) in zip(axes, series):

@@ -46,9 +46,11 @@ class ActorCriticConfig:
     return_norm_decay: float = 0.99  # EMA decay of the 5-95 percentile range of returns, Dreamer V3
     starts: int = 2500  # imagination start states per update: Dreamer V1 starts from all 50x50 posterior states
     goal_mix: float = 0.5  # share of goals from the goal encoder, the rest D_body posterior states (ours; sample_goals)
+    reward: str = "distance"  # r^goal: 'distance' = -d(s, g) (Sec. 4), 'feature' = cosine of the goal decoder's features of s and g (ours)
     goal_near: float = 0.0  # share of goals from a later frame of the start state's own segment, the rest anywhere in the batch (ours; sample_goals)
     bc: float = 0.0  # weight of hindsight goal-conditioned behaviour cloning on D_body (ours, bc_loss; 0 = Eq. 4 alone)
     bc_final: float = 0.0  # share of bc_loss's goals taken from the episode's last frame instead of a later frame of the segment (ours)
+    bc_steps: int = 1  # actor steps on bc_loss per update: the first with Eq. 4's loss, the rest on bc_loss alone, each with fresh goals (ours)
 
 
 PRESETS = {
@@ -57,7 +59,9 @@ PRESETS = {
     # bc: on a CPU budget (~2k actor updates) Eq. 4 alone did not learn to reach goals (docs/experiments.md, Ablations)
     # bc_final: evaluation and GIIL-ZS give the goal of an episode's last frame (docs/experiments.md, Phase 1)
     # goal_near: goals the policy can reach inside the horizon, so -d(s, g) can change with what it does (sample_goals)
-    "cpu": dict(units=256, actor_layers=2, critic_layers=2, starts=256, actor_lr=3e-4, critic_lr=3e-4, bc=1.0, bc_final=0.5, goal_near=0.5),
+    # bc_steps: a bc_loss step costs ~1/30 of an Eq. 4 step, and goal reaching kept rising with the number of them
+    # (docs/experiments.md, Phase 1)
+    "cpu": dict(units=256, actor_layers=2, critic_layers=2, starts=256, actor_lr=3e-4, critic_lr=3e-4, bc=1.0, bc_final=0.5, goal_near=0.5, bc_steps=10),
     "paper": dict(units=1024, horizon=16, starts=48 * 48),  # GenRL: horizon 16, all states of a 48x48 batch (Mazzaglia et al. 2024)
 }
 
@@ -221,6 +225,14 @@ def goal_reward(dist_net, feat, goal):
     return -dist_net(feat[:, 1:], goal)
 
 
+def feature_reward(vae, feat, goal):
+    """r^goal(s_{k+1}, g) = cos(p_hat(s_{k+1}), p_hat(g)) on arrival (ours, --ac-reward feature; GenRL's reward is a
+    cosine in the same spirit): how much the video feature the goal decoder reads in s_{k+1} looks like the one it reads
+    in g, i.e. whether the imagined body does what the goal's video shows, which a temporal distance between two
+    observations cannot tell for a periodic gait (docs/experiments.md). feat (N, H + 1, F), goal (N, F) -> (N, H)."""
+    return (vae.decode(feat[:, 1:]) * vae.decode(goal)[:, None]).sum(-1)
+
+
 def lambda_return(reward, value, gamma, lambda_):
     """TD(lambda) targets: reward (N, H) with reward[:, k] = r_{k+1} (on arriving at s_{k+1}), value (N, H + 1)
     with value[:, k] = v_k -> G (N, H), G_k = r_{k+1} + gamma [(1 - lambda) v_{k+1} + lambda G_{k+1}], G_H = v_H."""
@@ -276,17 +288,26 @@ def critic_loss(critic, feat, goal, returns):  # Eq. 4: V_eta trained with TD(la
     return loss, {"critic_loss": loss.item(), "value": value.mean().item()}
 
 
-def policy_losses(world_model, dist_net, actor, critic, slow_critic, return_norm, start, goal, cfg):  # Eq. 4
+def policy_losses(world_model, dist_net, actor, critic, slow_critic, return_norm, start, goal, cfg, vae=None):  # Eq. 4
     """One update of L_MG (module docstring): start dict of (N, .), goal (N, F) -> actor loss, critic loss, metrics.
-    Call ema_update(slow_critic, critic, cfg.slow_critic_rate) after the critic's optimiser step."""
-    with freeze(world_model, dist_net, slow_critic):
+    vae: the goal VAE, read by cfg.reward 'feature'. Call ema_update(slow_critic, critic, cfg.slow_critic_rate) after
+    the critic's optimiser step."""
+    if cfg.reward not in ("distance", "feature") or (cfg.reward == "feature" and vae is None):
+        raise ValueError(f"--ac-reward {cfg.reward!r}: pass 'distance' (Sec. 4) or 'feature' (with the goal VAE)")
+    with freeze(world_model, dist_net, slow_critic, *([vae] if vae is not None else [])):
         feat, _, log_prob = rollout(world_model, actor, start, goal, cfg.horizon)
-        reward = goal_reward(dist_net, feat, goal)  # (N, H)
+        rewards = {"distance": lambda: goal_reward(dist_net, feat, goal), "feature": lambda: feature_reward(vae, feat, goal)}
+        reward = rewards[cfg.reward]()  # (N, H)
+        with torch.no_grad():  # both readings of the same imagined steps are logged, whichever one is the reward
+            readings = {"reward_" + cfg.reward: reward.mean().item()}
+            if vae is not None:
+                other = "feature" if cfg.reward == "distance" else "distance"
+                readings["reward_" + other] = rewards[other]().mean().item()
         value = slow_critic(feat, goal)  # (N, H + 1): differentiable in feat, so -G reaches the actions
         returns = lambda_return(reward, value, cfg.gamma, cfg.lambda_)  # (N, H)
     a_loss, a_metrics = actor_loss(returns, log_prob, return_norm, cfg.entropy)
     c_loss, c_metrics = critic_loss(critic, feat, goal, returns)
-    return a_loss, c_loss, {**a_metrics, **c_metrics, "reward": reward.mean().item()}
+    return a_loss, c_loss, {**a_metrics, **c_metrics, "reward": reward.mean().item(), **readings}
 
 
 def make_critics(cfg, feat_dim, goal_dim):

@@ -309,16 +309,21 @@ def pretrain(cfgs, run_dir, resume):
         if step >= tc.policy_start:  # Eq. 4
             start, index = policy.sample_starts(post, ac.starts)
             goals = policy.sample_goals(post_feat, goal_feat, index, batch["is_first"], ac.goal_mix, ac.goal_near)
-            a_loss, c_loss, m = policy.policy_losses(wm, dist_net, models["actor"], models["critic"], models["slow_critic"], models["return_norm"], start, goals, ac)
+            a_loss, c_loss, m = policy.policy_losses(wm, dist_net, models["actor"], models["critic"], models["slow_critic"], models["return_norm"], start, goals, ac, vae)
             if ac.bc:
                 with torch.no_grad():
                     final_goal = vae.goal(batch["p_last"])  # (B, F)
-                bc, bc_metrics = policy.bc_loss(models["actor"], post_feat, goal_feat, batch["action"], final_goal, ac.bc_final)
+                clone = lambda: policy.bc_loss(models["actor"], post_feat, goal_feat, batch["action"], final_goal, ac.bc_final)
+                bc, bc_metrics = clone()
                 a_loss = a_loss + ac.bc * bc
                 m.update(bc_metrics)
             apply("actor", a_loss, "Eq. 4 actor loss")
             apply("critic", c_loss, "Eq. 4 critic loss")
             policy.ema_update(models["slow_critic"], models["critic"], ac.slow_critic_rate)
+            for _ in range(ac.bc_steps - 1 if ac.bc else 0):  # more cloning steps on this batch, each with fresh goals
+                bc, bc_metrics = clone()
+                apply("actor", ac.bc * bc, "behaviour-cloning loss")
+                m.update(bc_metrics)
             metrics.update(m)
         step += 1
         bar.update(1)

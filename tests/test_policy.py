@@ -269,3 +269,19 @@ def test_critic_with_the_goal_share_computed_once_equals_the_mlp_on_feat_and_goa
     feat, goal = torch.randn(5, 3, 6), torch.randn(5, 4)  # (N, H + 1, F), (N, G)
     expected = critic.net(torch.cat([feat, goal[:, None].expand(-1, 3, -1)], -1)).squeeze(-1)
     assert torch.allclose(critic(feat, goal), expected, atol=1e-6)
+
+
+def test_feature_reward_is_the_cosine_of_the_goal_decoders_features():
+    """r = cos(p_hat(s_{k+1}), p_hat(g)): 1 where the imagined state reads as the goal, 0 where orthogonal, never the start
+    state's; a reward name policy_losses does not know is a one-line error naming the flag."""
+    class Decoder(torch.nn.Module):  # p_hat = the state itself, normalised
+        def decode(self, feat):
+            return torch.nn.functional.normalize(feat, dim=-1)
+
+    goal = torch.tensor([[2.0, 0.0], [0.0, 3.0]])
+    feat = torch.tensor([[[0.0, 9.0], [5.0, 0.0], [0.0, 1.0]], [[0.0, 1.0], [0.0, 2.0], [1.0, 1.0]]])  # (N, H + 1, F)
+    reward = P.feature_reward(Decoder(), feat, goal)
+    assert reward.shape == (2, 2) and torch.allclose(reward, torch.tensor([[1.0, 0.0], [1.0, 2**-0.5]]))
+    cfg = P.ActorCriticConfig(**P.PRESETS["smoke"], reward="features")
+    with pytest.raises(ValueError, match="--ac-reward 'features'"):
+        P.policy_losses(None, None, None, None, None, None, {}, goal, cfg)
