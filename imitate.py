@@ -23,7 +23,7 @@ Choices where the paper is silent:
 * a segment against a 500-step demo: whole-demo OT (ot_reward.py) against every demo, the best one counting (ROT).
 
     python imitate.py --demo stickman_run [--view side|diagonal] [--run runs/<name> | --env walker|stickman] [--preset P] [--finetune]
-    python imitate.py --table [--run runs/<name>]        (tables.py)
+    python imitate.py --table [--run runs/<name>] [--methods giil,genrl,aime-nob]        (tables.py)
 Missing demos of the one body x task imitated are collected first (collect.py, the run's preset and data folder).
 """
 import argparse
@@ -291,6 +291,8 @@ def main():
     parser.add_argument("--table", action="store_true", help="all settings x tasks for this agent; keeps finished cells")
     parser.add_argument("--settings", default=",".join(envs.SETTINGS), help="with --table: the settings to run now, comma-separated")
     parser.add_argument("--shard", default="0/1", metavar="I/N", help="with --table: run only cells I, I + N, ... of the 16 (N processes, one table)")
+    parser.add_argument("--methods", default="giil", help="with --table: comma-separated, of giil (GIIL-ZS, GIIL-FT), genrl, aime-nob (the "
+                        "baselines, genrl.py and aime_nob.py with their --preset); e.g. giil,genrl,aime-nob")
     for field in dataclasses.fields(ImitateConfig):
         parser.add_argument("--" + field.name.replace("_", "-"), type=type(field.default), default=None,
                             choices=CHOICES.get(field.name), help=f"default {field.default!r}, or the preset's")
@@ -310,7 +312,7 @@ def main():
             assert len(shard) == 2 and 0 <= shard[0] < shard[1]
         except (ValueError, AssertionError):
             parser.error(f"--shard {args.shard}: pass I/N with 0 <= I < N, e.g. 0/4")
-        tables.table(run, ic, settings, shard=shard)
+        tables.table(run, ic, settings, shard=shard, methods=args.methods.split(","))
     elif args.demo:
         imitate(run, args.demo, args.view, args.finetune, ic)
     else:

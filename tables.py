@@ -1,5 +1,6 @@
-"""Tables 1-2 and 4-11 of the paper for one agent: every setting (SE/CE x SV/CV) x task, GIIL-ZS and GIIL-FT, ours
-beside the paper's. `python imitate.py --table` runs the cells missing from runs/<name>/results.jsonl (imitate.py) and
+"""Tables 1-2 and 4-11 of the paper for one agent: every setting (SE/CE x SV/CV) x task, GIIL-ZS and GIIL-FT, and with
+`--methods` the baselines GenRL and AIME-NoB, ours beside the paper's. `python imitate.py --table [--methods
+giil,genrl,aime-nob]` runs the cells missing from runs/<name>/results.jsonl (imitate.py, genrl.py, aime_nob.py) and
 writes runs/<name>/tables.md.
 """
 import dataclasses
@@ -17,19 +18,22 @@ from envs import SETTINGS
 
 
 METHODS = ("GIIL-ZS", "GIIL-ZS (demo 0)", "GIIL-FT")  # a cell's columns; GIIL-ZS (demo 0) is the goal GIIL-FT starts from
+BASELINES = {"genrl": "GenRL", "aime-nob": "AIME-NoB"}  # --methods name -> method of the rows (genrl.py, aime_nob.py)
 
-# The paper's normalised scores (GIIL-ZS, GIIL-FT) for comparison: Tables 1-2 ("all") and 4-11 (per task)
+# The paper's normalised scores, per setting (SE-SV, SE-CV, CE-SV, CE-CV) the columns PAPER_METHODS: Tables 1-2 ("all")
+# and 4-11 (per task), mean only
+PAPER_METHODS = ("GenRL", "AIME-NoB", "GIIL-ZS", "GIIL-FT")
 PAPER = {
-    "walker": {"all": [(42.52, 68.10), (32.97, 64.13), (19.47, 60.76), (18.09, 45.53)],
-               "stand": [(71.01, 100.57), (63.79, 97.37), (47.79, 49.45), (40.95, 49.90)],
-               "walk": [(16.68, 25.70), (19.92, 27.31), (12.68, 92.11), (10.17, 36.70)],
-               "run": [(55.92, 88.96), (12.36, 81.61), (6.40, 76.27), (4.24, 71.25)],
-               "jump": [(26.48, 57.19), (35.81, 50.24), (11.03, 25.21), (17.01, 24.29)]},
-    "stickman": {"all": [(68.27, 68.56), (61.26, 72.66), (54.89, 61.77), (38.37, 58.99)],
-                 "stand": [(96.96, 98.51), (97.59, 99.75), (66.48, 100.83), (62.68, 100.99)],
-                 "walk": [(59.98, 91.00), (59.38, 94.33), (46.77, 22.12), (20.79, 17.57)],
-                 "run": [(80.65, 58.65), (51.70, 59.25), (69.71, 69.49), (37.93, 61.68)],
-                 "jump": [(35.50, 26.07), (36.37, 37.30), (36.59, 54.64), (32.07, 55.73)]},
+    "walker": {"all": [(86.05, 84.80, 42.52, 68.10), (65.98, 51.46, 32.97, 64.13), (52.12, 64.91, 19.47, 60.76), (65.91, 28.92, 18.09, 45.53)],
+               "stand": [(101.89, 101.88, 71.01, 100.57), (92.19, 101.30, 63.79, 97.37), (98.35, 101.27, 47.79, 49.45), (101.09, 96.02, 40.95, 49.90)],
+               "walk": [(96.31, 99.36, 16.68, 25.70), (76.90, 16.13, 19.92, 27.31), (22.73, 61.01, 12.68, 92.11), (72.50, 18.74, 10.17, 36.70)],
+               "run": [(76.04, 38.45, 55.92, 88.96), (25.85, 19.72, 12.36, 81.61), (39.81, 51.82, 6.40, 76.27), (34.96, 3.84, 4.24, 71.25)],
+               "jump": [(69.93, 99.49, 26.48, 57.19), (68.99, 68.68, 35.81, 50.24), (47.60, 45.53, 11.03, 25.21), (55.10, -2.91, 17.01, 24.29)]},
+    "stickman": {"all": [(55.30, 83.90, 68.27, 68.56), (63.58, 45.35, 61.26, 72.66), (47.37, 70.64, 54.89, 61.77), (20.44, 49.99, 38.37, 58.99)],
+                 "stand": [(97.26, 100.93, 96.96, 98.51), (100.30, 97.50, 97.59, 99.75), (97.88, 101.05, 66.48, 100.83), (6.51, 99.51, 62.68, 100.99)],
+                 "walk": [(45.67, 99.33, 59.98, 91.00), (80.11, 23.13, 59.38, 94.33), (12.40, 87.76, 46.77, 22.12), (-0.01, 21.72, 20.79, 17.57)],
+                 "run": [(26.11, 47.62, 80.65, 58.65), (35.17, 14.90, 51.70, 59.25), (26.75, 33.58, 69.71, 69.49), (30.10, 19.51, 37.93, 61.68)],
+                 "jump": [(52.16, 87.74, 35.50, 26.07), (38.72, 45.87, 36.37, 37.30), (52.43, 60.14, 36.59, 54.64), (45.14, 59.22, 32.07, 55.73)]},
 }
 
 
@@ -60,9 +64,24 @@ def cells(agent):
     return [(task, where) for task in envs.TASKS for where in SETTINGS]
 
 
-def table(run_dir, ic, settings=SETTINGS, demos_per_cell=10, shard=(0, 1)):
-    """Every setting x task for this agent, GIIL-ZS, GIIL-ZS (demo 0) and GIIL-FT; runs only what is missing from
-    results.jsonl. `settings` limits which settings run now, shard (i, N) runs only the cells i, i + N, i + 2N, ... of
+def baseline_configs(preset, methods):
+    """{method: (module, its config, the config its rows carry)} of the baselines named in `methods` (BASELINES' keys),
+    each with its own preset of that name (cpu's where it has none)."""
+    import aime_nob
+    import genrl
+
+    out = {}
+    for name in methods:
+        module, cls = {"genrl": (genrl, genrl.GenRLConfig), "aime-nob": (aime_nob, aime_nob.AIMENoBConfig)}[name]
+        cfg = cls(**module.PRESETS.get(preset, {}))  # a preset the baseline has not (paper): its defaults
+        out[BASELINES[name]] = (module, cfg, genrl.result_config(cfg))
+    return out
+
+
+def table(run_dir, ic, settings=SETTINGS, demos_per_cell=10, shard=(0, 1), methods=("giil",)):
+    """Every setting x task for this agent, GIIL-ZS, GIIL-ZS (demo 0) and GIIL-FT ("giil" in `methods`) and the baselines
+    named in `methods` (BASELINES' keys: genrl.py, aime_nob.py, each with its preset of ic.preset); runs only what is
+    missing from results.jsonl, and shows every finished cell of all of them. `settings` limits which settings run now, shard (i, N) runs only the cells i, i + N, i + 2N, ... of
     `cells` (N processes or machines share one table: rows are appended under a lock, one row per evaluation, and a
     cell's rows are told apart by method and seed, so shards merge without loss or duplicates); the tables show every
     finished cell. A row counts only if it was made with the demos now on disk (their returns match) and with the
@@ -70,7 +89,11 @@ def table(run_dir, ic, settings=SETTINGS, demos_per_cell=10, shard=(0, 1)):
     of mixing old and new results."""
     import imitate  # the cells it runs (imitate.py imports this module)
 
+    unknown = [m for m in methods if m != "giil" and m not in BASELINES]
+    if unknown:
+        raise ValueError(f"--methods {','.join(unknown)}: choose from giil, {', '.join(BASELINES)}")
     rundir.check_flags(ic)
+    baselines = baseline_configs(ic.preset, BASELINES)  # their finished cells are shown whichever methods run now
     cfgs = train.load_run(run_dir)[0]
     agent, current = cfgs["train"].env, []
     for k, (task, where) in enumerate(cells(agent)):
@@ -80,12 +103,17 @@ def table(run_dir, ic, settings=SETTINGS, demos_per_cell=10, shard=(0, 1)):
         if not os.path.isdir(folder):
             continue
         returns = [round(e["return"], 3) for e in collect.load_folder(folder, ())]
+        config = lambda m: baselines[m][2] if m in baselines else result_config(ic, m)
         cell = lambda: [r for r in load_results(run_dir) if r["demo"] == demo and r["view"] == view and r.get("demo_returns") == returns
-                        and r.get("config") == result_config(ic, r["method"])]
+                        and (r["method"] in METHODS or r["method"] in baselines) and r.get("config") == config(r["method"])]
         count = lambda m: len({r["seed"] for r in cell() if r["method"] == m})
         zs, ft = count("GIIL-ZS") < demos_per_cell, min(count("GIIL-FT"), count("GIIL-ZS (demo 0)")) < ic.seeds
-        if (zs or ft) and run_now:
+        if (zs or ft) and run_now and "giil" in methods:
             imitate.imitate(run_dir, demo, view, ft, ic, zero_shot=zs)
+        for name, method in BASELINES.items():
+            module, cfg, _ = baselines[method]
+            if count(method) < cfg.seeds and run_now and name in methods:
+                module.run_cell(run_dir, demo, view, cfg)
         current += cell()
     text = markdown_tables(agent, current)
     path = os.path.join(run_dir, "tables.md")
@@ -99,16 +127,17 @@ def markdown_tables(agent, rows):
     def cell(scores):
         return f"{np.mean(scores):.1f} +- {evaluate.stderr(scores):.1f}" if scores else "-"
 
-    methods = METHODS
+    methods = METHODS + tuple(m for m in BASELINES.values() if any(r["method"] == m for r in rows))
+    paper_methods = [m for m in methods if m in PAPER_METHODS]  # the paper's columns of the methods shown
     out = []
     for task in ("all",) + envs.TASKS:
         title = f"{agent} agent, {'all tasks (as Table 1/2)' if task == 'all' else task}: normalised score, mean +- s.e."
-        out += [f"### {title}", "", "| setting | " + " | ".join(f"{m} (ours)" for m in methods) + " | GIIL-ZS (paper) | GIIL-FT (paper) |",
-                "|---|" + "---|" * (len(methods) + 2)]
+        out += [f"### {title}", "", "| setting | " + " | ".join(f"{m} (ours)" for m in methods) + " | " + " | ".join(f"{m} (paper)" for m in paper_methods) + " |",
+                "|---|" + "---|" * (len(methods) + len(paper_methods))]
         pick = lambda m, ws: [r["score"] for r in rows if r["method"] == m and r["setting"] in ws and (task == "all" or r["task"] == task)]
         # "w/o SE-SV" the paper's way: the mean over the other three settings' results
         for name, ws in [(w, [w]) for w in SETTINGS] + [("Average", SETTINGS), ("Average w/o SE-SV", SETTINGS[1:])]:
-            paper = [np.mean([PAPER[agent][task][SETTINGS.index(w)][m] for w in ws]) for m in (0, 1)]
-            out.append(f"| {name} | " + " | ".join(cell(pick(m, ws)) for m in methods) + f" | {paper[0]:.2f} | {paper[1]:.2f} |")
+            paper = [np.mean([PAPER[agent][task][SETTINGS.index(w)][PAPER_METHODS.index(m)] for w in ws]) for m in paper_methods]
+            out.append(f"| {name} | " + " | ".join(cell(pick(m, ws)) for m in methods) + " | " + " | ".join(f"{p:.2f}" for p in paper) + " |")
         out.append("")
     return "\n".join(out)

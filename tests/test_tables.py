@@ -50,3 +50,31 @@ def test_shards_together_make_the_whole_table_once(smoke_run, tmp_path):
     keys = [(r["demo"], r["view"], r["method"], r["seed"]) for r in rows]
     assert len(keys) == len(set(keys)) == 16 * (2 + 2 * SMOKE.seeds)  # every cell once, nothing twice
     assert "| - |" not in open(os.path.join(run, "tables.md")).read().split("### ")[1]  # Table 1/2 filled
+
+
+def test_baselines_join_the_table_as_columns_and_are_not_rerun(smoke_run, tmp_path):
+    """--methods giil,genrl,aime-nob: each cell asked for gets the baselines' seeds, the tables show
+    their columns beside the paper's, and a second call runs nothing; an unknown method is a one-line error."""
+    import aime_nob
+    import genrl
+    import pytest
+
+    run = str(tmp_path / "run")
+    shutil.copytree(smoke_run, run, ignore=shutil.ignore_patterns("results.jsonl"))
+    smoke = dataclasses.replace(SMOKE, preset="smoke")  # the baselines' smoke presets too
+    one_cell = dict(demos_per_cell=2, shard=(0, 16))  # cell 0: stand, SE-SV
+    tables.table(run, smoke, methods=("genrl", "aime-nob"), **one_cell)
+    rows = tables.load_results(run)
+    seeds = {m: genrl.PRESETS["smoke"]["seeds"] if m == "GenRL" else aime_nob.PRESETS["smoke"]["seeds"] for m in ("GenRL", "AIME-NoB")}
+    assert {r["method"] for r in rows} == {"GenRL", "AIME-NoB"} and {(r["task"], r["setting"]) for r in rows} == {("stand", "SE-SV")}
+    assert len(rows) == sum(seeds.values())  # each baseline's seeds, no GIIL (not asked for)
+    text = open(os.path.join(run, "tables.md")).read()
+    assert "| GenRL (ours) | AIME-NoB (ours) | GIIL-ZS (paper) | GIIL-FT (paper) | GenRL (paper) | AIME-NoB (paper) |" in text
+    assert "| SE-SV | - | - | - | " in text and "| 42.52 | 68.10 | 86.05 | 84.80 |" in text  # GIIL not run; the paper's walker Table 1
+    tables.table(run, smoke, methods=("genrl", "aime-nob"), **one_cell)
+    assert len(tables.load_results(run)) == len(rows)  # nothing missing: nothing runs again
+    tables.table(run, smoke, methods=("giil",), **one_cell)
+    assert {r["method"] for r in tables.load_results(run)[len(rows):]} == {"GIIL-ZS", "GIIL-ZS (demo 0)", "GIIL-FT"}
+    assert "| GenRL (ours) | AIME-NoB (ours) |" in open(os.path.join(run, "tables.md")).read()  # the baselines' cells stay
+    with pytest.raises(ValueError, match="--methods dreamer: choose from giil, genrl, aime-nob"):
+        tables.table(run, SMOKE, methods=("giil", "dreamer"))
