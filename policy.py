@@ -53,6 +53,8 @@ class ActorCriticConfig:
     bc_steps: int = 1  # actor steps on bc_loss per update: the first with Eq. 4's loss, the rest on bc_loss alone, each with fresh goals (ours)
 
 
+REWARDS = ("distance", "feature")  # the values of ActorCriticConfig.reward
+
 PRESETS = {
     "smoke": dict(units=16, actor_layers=2, critic_layers=2, horizon=5, starts=32),
     # ours: an update costs time linear in starts (~1 s for all 800 states of a 16x50 batch on one core)
@@ -292,7 +294,7 @@ def policy_losses(world_model, dist_net, actor, critic, slow_critic, return_norm
     """One update of L_MG (module docstring): start dict of (N, .), goal (N, F) -> actor loss, critic loss, metrics.
     vae: the goal VAE, read by cfg.reward 'feature'. Call ema_update(slow_critic, critic, cfg.slow_critic_rate) after
     the critic's optimiser step."""
-    if cfg.reward not in ("distance", "feature") or (cfg.reward == "feature" and vae is None):
+    if cfg.reward not in REWARDS or (cfg.reward == "feature" and vae is None):
         raise ValueError(f"--ac-reward {cfg.reward!r}: pass 'distance' (Sec. 4) or 'feature' (with the goal VAE)")
     with freeze(world_model, dist_net, slow_critic, *([vae] if vae is not None else [])):
         feat, _, log_prob = rollout(world_model, actor, start, goal, cfg.horizon)

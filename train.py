@@ -74,7 +74,7 @@ def add_config_flags(parser):
     """One flag per field of each component's config (default None: 'not given', so presets apply)."""
     for name, (cls, presets, prefix) in COMPONENTS.items():
         for field in dataclasses.fields(cls):
-            choices = tuple(presets) if field.name == "preset" else None
+            choices = tuple(presets) if field.name == "preset" else policy.REWARDS if (name, field.name) == ("ac", "reward") else None
             parser.add_argument("--" + prefix + field.name.replace("_", "-"), dest=f"{name}.{field.name}", type=type(field.default),
                                 default=None, choices=choices, metavar=None if choices else type(field.default).__name__.upper(),
                                 help=f"{cls.__name__}.{field.name} (default {field.default!r}, or the preset's)")

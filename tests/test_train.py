@@ -105,6 +105,8 @@ def test_command_line_runs_and_resumes(smoke_data, tmp_path):
     assert torch.load(os.path.join(run, "checkpoint.pt"), weights_only=True)["step"] == 8
     bad = subprocess.run(base[:3] + ["humanoid"], cwd=cwd, capture_output=True, text=True)
     assert bad.returncode != 0 and "valid body names are walker, stickman" in bad.stderr
+    bad = subprocess.run(base + ["--ac-reward", "dist"], cwd=cwd, capture_output=True, text=True)  # refused before any work
+    assert bad.returncode != 0 and "invalid choice: 'dist' (choose from 'distance', 'feature')" in bad.stderr
 
 
 def test_exported_agent_loads_weights_only_and_acts_like_its_run(smoke_run, tmp_path, monkeypatch, capsys):
