@@ -51,6 +51,9 @@ class ActorCriticConfig:
     bc: float = 0.0  # weight of hindsight goal-conditioned behaviour cloning on D_body (ours, bc_loss; 0 = Eq. 4 alone)
     bc_final: float = 0.0  # share of bc_loss's goals taken from the episode's last frame instead of a later frame of the segment (ours)
     bc_steps: int = 1  # actor steps on bc_loss per update: the first with Eq. 4's loss, the rest on bc_loss alone, each with fresh goals (ours)
+    bc_polish: int = 0  # bc_loss steps of the actor alone on the frozen final world model and goal VAE, after the last update (ours; train.polish)
+    bc_polish_fresh: int = 0  # 1: those steps train a freshly initialised actor instead of the trained one (ours; train.polish)
+    bc_polish_batches: int = 250  # D_body batches whose posterior states the polish computes once and cycles (ours; train.polish)
 
 
 REWARDS = ("distance", "feature")  # the values of ActorCriticConfig.reward
@@ -63,7 +66,9 @@ PRESETS = {
     # goal_near: goals the policy can reach inside the horizon, so -d(s, g) can change with what it does (sample_goals)
     # bc_steps: a bc_loss step costs ~1/30 of an Eq. 4 step, and goal reaching kept rising with the number of them
     # (docs/experiments.md, Phase 1)
-    "cpu": dict(units=256, actor_layers=2, critic_layers=2, starts=256, actor_lr=3e-4, critic_lr=3e-4, bc=1.0, bc_final=0.5, goal_near=0.5, bc_steps=10),
+    # bc_polish: the actor learns while the world model's posterior states still move; cloning on the final ones
+    # raised goal reaching (docs/experiments.md, Phase 1)
+    "cpu": dict(units=256, actor_layers=2, critic_layers=2, starts=256, actor_lr=3e-4, critic_lr=3e-4, bc=1.0, bc_final=0.5, goal_near=0.5, bc_steps=10, bc_polish=5000),
     "paper": dict(units=1024, horizon=16, starts=48 * 48),  # GenRL: horizon 16, all states of a 48x48 batch (Mazzaglia et al. 2024)
 }
 

@@ -13,6 +13,7 @@ policy in the real environment with its own body's side-view demos as goals, aga
     python train.py --env walker --evaluate [--run-dir runs/<name>]   # the benchmark alone, of a trained run
 """
 import argparse
+import copy
 import dataclasses
 import json
 import os
@@ -64,7 +65,8 @@ COMPONENTS = {
     "ac": (policy.ActorCriticConfig, policy.PRESETS, "ac-"),
 }
 # fields that may differ when a run is resumed: they do not change what the models are
-RESUMABLE = {"steps", "log_every", "checkpoint_every", "eval_episodes", "eval_steps", "data", "threads"}
+RESUMABLE = {"steps", "log_every", "checkpoint_every", "eval_episodes", "eval_steps", "data", "threads",
+             "bc_polish", "bc_polish_fresh", "bc_polish_batches"}  # the polish starts from the training actor, kept apart in the checkpoint
 DIVERGED = 1e10  # |loss| above this is divergence (ours: the smoke preset's losses are below 100; a learning rate of 1e3 on
 # the goal VAE, distance or critic gave losses of 1e20 and more within 4 updates)
 LR_FLAGS = {"world_model": ("wm", "lr"), "goal_vae": ("goal", "lr"), "dist_net": ("dist", "lr"), "actor": ("ac", "actor_lr"), "critic": ("ac", "critic_lr")}
@@ -227,6 +229,7 @@ def restore(ckpt_path, config, models, optims, encoder, device):
     check_same_encoder(ckpt["encoder"], encoder.name, ckpt_path)
     for name, model in models.items():
         model.load_state_dict(ckpt["models"][name])
+    models["actor"].load_state_dict(ckpt.get("actor_unpolished", ckpt["models"]["actor"]))  # training goes on from the unpolished actor
     for name, opt in optims.items():
         opt.load_state_dict(ckpt["optims"][name])
     torch.set_rng_state(ckpt["torch_rng"])
@@ -264,10 +267,12 @@ def pretrain(cfgs, run_dir, resume):
         step, rng = restore(ckpt_path, config, models, optims, encoder, device)
     rundir.trim_jsonl(os.path.join(run_dir, "metrics.jsonl"), step)  # rows a killed run logged after its checkpoint
 
-    def save():
+    def save(actor_unpolished=None):
         state = {"config": config, "step": step, "rng": rng.bit_generator.state, "torch_rng": torch.get_rng_state(), "encoder": encoder.name,
                  "obs_shape": obs_shape, "action_dim": action_dim, "p_dim": p_dim,
                  "models": {k: m.state_dict() for k, m in models.items()}, "optims": {k: o.state_dict() for k, o in optims.items()}}
+        if actor_unpolished is not None:
+            state["actor_unpolished"] = actor_unpolished
         collect.atomic_write(ckpt_path, lambda f: torch.save(state, f))
         return step
 
@@ -338,9 +343,44 @@ def pretrain(cfgs, run_dir, resume):
         if step % tc.checkpoint_every == 0 or step == tc.steps:
             saved = save()
     bar.close()
+    if ac.bc and ac.bc_polish:
+        unpolished = copy.deepcopy(models["actor"].state_dict())
+        polish(models, cfgs, data, device)
+        saved = save(unpolished)
     final_report(run_dir, models, cfgs, held_out, device)
     print(f"wrote {ckpt_path}, {run_dir}/metrics.jsonl")
     return run_dir
+
+
+def polish(models, cfgs, data, device):
+    """After the last update, ac.bc_polish steps of hindsight behaviour cloning (policy.bc_loss) of the actor alone on
+    the frozen final world model and goal VAE (ours): during training the actor clones from posterior states that the
+    world model still moves, and cloning on the final ones raised goal reaching (docs/experiments.md, Phase 1). With
+    ac.bc_polish_fresh the actor is first initialised afresh (models["actor"] is replaced). The posterior states of
+    ac.bc_polish_batches D_body batches are computed once and cycled, each step with fresh hindsight goals; a fresh
+    Adam at the actor's lr, and RNGs of its own, so that the training's (in the checkpoint) are untouched."""
+    wc, ac, tc = cfgs["wm"], cfgs["ac"], cfgs["train"]
+    wm, vae = models["world_model"], models["goal_vae"]
+    rng, cache = np.random.default_rng([tc.seed, 1]), []
+    with torch.random.fork_rng(devices=[]), torch.no_grad():
+        torch.manual_seed(tc.seed + 1)
+        if ac.bc_polish_fresh:
+            models["actor"] = policy.Actor(ac, wm.feat_dim, wm.feat_dim, data.data["action"].shape[-1]).to(device)
+        for _ in range(min(ac.bc_polish_batches, ac.bc_polish)):
+            b = data.sample(wc.batch, rng, device)
+            post, _ = wm.observe(b[wc.obs], b["action"], b["is_first"])
+            cache.append((wm.feat(post), vae.goal(b["p"]), b["action"], vae.goal(b["p_last"])))
+    actor = models["actor"]
+    opt = torch.optim.Adam(actor.parameters(), lr=ac.actor_lr)
+    with torch.random.fork_rng(devices=[]):
+        torch.manual_seed(tc.seed + 2)
+        for k in tqdm(range(ac.bc_polish), desc="polish the actor (behaviour cloning on the final world model)"):
+            loss, m = policy.bc_loss(actor, *cache[k % len(cache)], ac.bc_final)
+            opt.zero_grad(set_to_none=True)
+            loss.backward()
+            torch.nn.utils.clip_grad_norm_(actor.parameters(), ac.grad_clip)
+            opt.step()
+    print(f"polished the actor: {ac.bc_polish} cloning steps on the final world model, bc_loss {m['bc_loss']:.3f}")
 
 
 def main():

@@ -4,13 +4,12 @@ by the goal-reaching benchmark (evaluate.goal_reaching, 1 episode per demo goal)
 the mean normalised score of D_body's expert episodes per task, and for each own side-view demo's last feature p_T
 the share of its 200 nearest D_body frames (cosine of p) that come from the same task. Run from the repository root:
 
-    python docs/bc_probe.py runs/walker_bc1_s0 --steps 20000 [--batches 1000] [--final-share 0.5] [--units 256 --layers 2]
+    python docs/bc_probe.py runs/walker_bc1_s0 --steps 20000 [--batches 1000] [--final-share 0.5] [--units 256 --layers 2] [--keep-actor] [--data DIR]
 """
 import argparse
 import dataclasses
 import os
 import sys
-import time
 
 import numpy as np
 import torch
@@ -19,7 +18,6 @@ sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 import collect  # noqa: E402
 import envs  # noqa: E402
 import evaluate  # noqa: E402
-import policy  # noqa: E402
 import train  # noqa: E402
 
 
@@ -42,29 +40,16 @@ if __name__ == "__main__":
     parser.add_argument("--final-share", type=float, default=0.5, help="bc_loss's share of goals from the episode's last frame")
     parser.add_argument("--units", type=int, default=None)
     parser.add_argument("--layers", type=int, default=None)
+    parser.add_argument("--data", default=None, help="D_body and demos from this folder instead of the run's (same world model)")
+    parser.add_argument("--keep-actor", action="store_true", help="go on from the run's trained actor instead of a fresh one")
     args = parser.parse_args()
     torch.set_num_threads(1)
     torch.manual_seed(0)
     cfgs, models, _ = train.load_run(args.run)
+    cfgs["train"] = dataclasses.replace(cfgs["train"], data=args.data or cfgs["train"].data)
     what_the_data_allow(cfgs)
     _, data, _, _ = train.prepare_data(cfgs)
-    wm, vae, wc = models["world_model"], models["goal_vae"], cfgs["wm"]
-    rng, cache, t0 = np.random.default_rng(0), [], time.time()
-    with torch.no_grad():
-        for _ in range(args.batches):
-            b = data.sample(wc.batch, rng, "cpu")
-            post, _ = wm.observe(b[wc.obs], b["action"], b["is_first"])
-            cache.append((wm.feat(post), vae.goal(b["p"]), b["action"], vae.goal(b["p_last"])))
-    ac = dataclasses.replace(cfgs["ac"], units=args.units or cfgs["ac"].units, actor_layers=args.layers or cfgs["ac"].actor_layers)
-    actor = policy.Actor(ac, wm.feat_dim, wm.feat_dim, cache[0][2].shape[-1])
-    opt = torch.optim.Adam(actor.parameters(), lr=ac.actor_lr)
-    for k in range(args.steps):
-        loss, m = policy.bc_loss(actor, *cache[k % len(cache)], args.final_share)
-        opt.zero_grad()
-        loss.backward()
-        torch.nn.utils.clip_grad_norm_(actor.parameters(), ac.grad_clip)
-        opt.step()
-        if k % 1000 == 0:
-            print(f"step {k}: bc_loss {m['bc_loss']:.3f} ({time.time() - t0:.0f} s)", flush=True)
-    models["actor"] = actor
+    ac = dataclasses.replace(cfgs["ac"], units=args.units or cfgs["ac"].units, actor_layers=args.layers or cfgs["ac"].actor_layers,
+                             bc_polish=args.steps, bc_polish_fresh=int(not args.keep_actor), bc_polish_batches=args.batches, bc_final=args.final_share)
+    train.polish(models, {**cfgs, "ac": ac}, data, "cpu")  # the cloning steps, as train.py's polish runs them
     print("\n".join(evaluate.summary(evaluate.goal_reaching(models, cfgs, 1, 500))))

@@ -1,4 +1,5 @@
 """train.py: end to end with the smoke preset, resume, config mismatch, NaN stop, the paper preset's sizes."""
+import dataclasses
 import json
 import os
 import shutil
@@ -139,3 +140,31 @@ def test_bc_steps_are_extra_actor_steps_and_the_feature_reward_trains(smoke_data
     assert {int(s["step"]) for s in ckpt["optims"]["critic"]["state"].values()} == {tc.steps - tc.policy_start}
     last = [json.loads(l) for l in open(os.path.join(run, "metrics.jsonl"))][-1]
     assert -1 <= last["reward"] <= 1 and "bc_loss" in last
+
+
+def test_polish_clones_on_the_final_models_and_leaves_training_untouched(smoke_data, tmp_path):
+    """--ac-bc-polish N: after the last update, N cloning steps of the actor alone. The checkpoint's actor is the polished
+    one; the world model, the training actor (kept as actor_unpolished) and the RNG are those of the same run without
+    polish, and a resumed run trains on from the unpolished actor, as if no polish had been."""
+    def run(name, steps, polish, resume=False):
+        cfgs = train.resolve_configs(train_args(data=smoke_data, steps=steps, **{"ac.bc": 1.0, "ac.bc_polish": polish}), "smoke")
+        train.train(cfgs, str(tmp_path / name), resume=resume)
+        return torch.load(os.path.join(tmp_path, name, "checkpoint.pt"), weights_only=True)
+
+    plain, polished = run("plain", 6, 0), run("polished", 6, 20)
+    assert "actor_unpolished" not in plain and polished["config"]["ac"]["bc_polish"] == 20
+    same = lambda a, b: a.keys() == b.keys() and all(torch.equal(a[k], b[k]) for k in a)
+    assert same(polished["actor_unpolished"], plain["models"]["actor"])
+    assert not same(polished["models"]["actor"], plain["models"]["actor"])
+    assert same(polished["models"]["world_model"], plain["models"]["world_model"])
+    assert torch.equal(polished["torch_rng"], plain["torch_rng"]) and polished["rng"] == plain["rng"]
+    assert same(run("plain", 8, 0, resume=True)["models"]["actor"], run("polished", 8, 0, resume=True)["models"]["actor"])
+    # --ac-bc-polish-fresh 1: the polish trains a new actor, whatever the trained one was
+    cfgs, models, _ = train.load_run(str(tmp_path / "plain"))
+    cfgs["ac"] = dataclasses.replace(cfgs["ac"], bc_polish=5, bc_polish_fresh=1, bc_polish_batches=2)
+    data = train.prepare_data(cfgs)[1]
+    train.polish(models, cfgs, data, "cpu")
+    first = models["actor"].state_dict()
+    models["actor"] = torch.nn.Linear(1, 1)  # any trained actor at all
+    train.polish(models, cfgs, data, "cpu")
+    assert same(models["actor"].state_dict(), first) and not same(first, plain["models"]["actor"])
