@@ -240,9 +240,10 @@ def imitate(run_dir, demo, view, finetune, ic, zero_shot=True):
     results_path = os.path.join(run_dir, "results.jsonl")
     rows = []
 
-    def evaluate_goal(method, seed, goal, video_demo):
+    def evaluate_goal(method, seed, goal, video_demo, **extra):
         """eval_episodes episodes at once with goal (F,), environment seeds 20000 + 100 seed + e: GIIL-FT seed s and
-        GIIL-ZS (demo 0) seed s meet the same start states. Seed 0's first episode is written as a video."""
+        GIIL-ZS (demo 0) seed s meet the same start states. Seed 0's first episode is written as a video. `extra`: more
+        fields of the row."""
         render = bool(ic.video) and seed == 0
         env_list = [envs.make_env(tc.env, task) for _ in range(ic.eval_episodes)]
         returns, frames = evaluate.run_episodes(env_list, models, goal[None].expand(ic.eval_episodes, -1), ic.eval_steps,
@@ -252,7 +253,7 @@ def imitate(run_dir, demo, view, finetune, ic, zero_shot=True):
             write_video(os.path.join(out_dir, f"{demo}_{view}_{method.replace(' ', '_')}_s{seed}.mp4"), video_demo, frames[0])
         row = {"agent": tc.env, "demo": demo, "view": view, "task": task, "setting": where, "method": method, "seed": seed,
                "score": float(np.mean(scores)), "episode_scores": scores, "time": round(time.time() - t0, 1), "demo_returns": demo_returns,
-               "config": tables.result_config(ic, method)}
+               "config": tables.result_config(ic, method), **extra}
         rundir.append_jsonl(results_path, row)
         rows.append(row)
 
@@ -270,7 +271,8 @@ def imitate(run_dir, demo, view, finetune, ic, zero_shot=True):
                 m.load_state_dict(psi_star[k])
             goal = finetune_goal(models, cfgs, ic, ot_cfg, torch.as_tensor(demos[0]["p"][-1], device=device), [d["p"] for d in demos], seed, device,
                                  ckpt.get("optims"))
-            evaluate_goal("GIIL-FT", seed, goal, demos[0]["pixels"])
+            # how far finetuning moved g: beside the distance between the demos' zero-shot goals (docs/experiments.md)
+            evaluate_goal("GIIL-FT", seed, goal, demos[0]["pixels"], goal_shift=round((goal - goals[0]).norm().item(), 3))
     for method in tables.METHODS:
         scores = [r["score"] for r in rows if r["method"] == method]
         if scores:

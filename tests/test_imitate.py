@@ -22,6 +22,7 @@ def test_zero_shot_and_finetune_end_to_end(smoke_run):
     zs0 = [r for r in rows if r["method"] == "GIIL-ZS (demo 0)"]
     assert len(zs) == 2 and len(ft) == len(zs0) == SMOKE.seeds  # smoke: 2 demos per folder, 2 seeds
     assert all(r["setting"] == "CE-CV" and r["task"] == "run" and np.isfinite(r["score"]) for r in rows)
+    assert all(r["goal_shift"] > 0 for r in ft)  # finetuning moved g
     assert os.path.getsize(os.path.join(smoke_run, "imitate", "stickman_run_diagonal_GIIL-FT_s0.mp4")) > 0
     logged = [json.loads(l) for l in open(os.path.join(smoke_run, "results.jsonl"))]
     assert logged[-len(rows):] == rows
@@ -193,3 +194,4 @@ def test_zero_shot_demo_0_is_finetuning_that_never_moves_the_goal(smoke_run, tmp
     zs0 = [r["episode_scores"] for r in rows if r["method"] == "GIIL-ZS (demo 0)"]
     ft = [r["episode_scores"] for r in rows if r["method"] == "GIIL-FT"]
     assert len(zs0) == SMOKE.seeds and np.allclose(zs0, ft, atol=1e-6)
+    assert all(r["goal_shift"] < 1e-6 for r in rows if r["method"] == "GIIL-FT")  # ||g - g0||, logged with each GIIL-FT row
