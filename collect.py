@@ -28,7 +28,7 @@ import multiprocessing
 import os
 import pickle
 import zipfile
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 
 import numpy as np
 import torch
@@ -369,8 +369,14 @@ def main():
     parser.add_argument("--data", default=None, help="default: data, or data/smoke for --preset smoke (collect.DATA)")
     parser.add_argument("--workers", type=int, default=os.cpu_count())
     parser.add_argument("--encoder", default="default", help="'default' or a TorchScript video model file (video_encoder.py)")
+    parser.add_argument("--task-episodes", type=int, default=None, help="D_body episodes per task (default: the preset's); "
+                        "the shipped stickman agent's D_body has 80 (docs/experiments.md)")
     args = parser.parse_args()
     cfg, args.data = CollectConfig(**PRESETS[args.preset]), args.data or DATA[args.preset]
+    if args.task_episodes is not None:
+        if args.task_episodes < 1:
+            parser.error(f"--task-episodes {args.task_episodes}: pass at least 1")
+        cfg = replace(cfg, task_episodes=args.task_episodes)
     if not (args.env or args.demos or args.features):
         parser.error("nothing to do: pass --env BODY, --demos or --features")
     if args.env:

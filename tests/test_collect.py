@@ -98,3 +98,28 @@ def test_collection_never_replaces_a_written_view(data, tmp_path):
     assert side.read_bytes() == before
     assert collect.load_episode(str(tmp_path / "demos" / "walker_run_diagonal" / "00.npz"))["view"] == "diagonal"
     assert sorted(os.listdir(tmp_path / "demos")) == ["walker_run_diagonal", "walker_run_side"]
+
+
+def test_task_episodes_flag_grows_d_body_and_keeps_what_exists(data, tmp_path):
+    """`python collect.py --task-episodes N` collects N episodes per task (the preset's others unchanged) on top of a
+    smaller D_body, rewriting none of it; 0 is refused in one line."""
+    import json
+    import shutil
+    import subprocess
+    import sys
+
+    root = str(tmp_path / "data")
+    shutil.copytree(data, root)
+    folder = os.path.join(root, "walker")
+    before = {n: os.path.getmtime(os.path.join(folder, n)) for n in os.listdir(folder) if n.endswith(".npz")}
+    script = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "collect.py")
+    run = lambda n: subprocess.run([sys.executable, script, "--env", "walker", "--preset", "smoke", "--data", root, "--workers", "1",
+                                    "--task-episodes", str(n)], capture_output=True, text=True)
+    out = run(0)
+    assert out.returncode == 2 and out.stderr.strip().endswith("--task-episodes 0: pass at least 1")
+    out = run(2)
+    assert out.returncode == 0, out.stderr[-2000:]
+    names = sorted(n for n in os.listdir(folder) if n.endswith(".npz"))
+    assert len(names) == SMOKE.explore_episodes + 2 * len(collect.BODY_TASKS) and "walk_0001.npz" in names
+    assert all(os.path.getmtime(os.path.join(folder, n)) == t for n, t in before.items())
+    assert json.load(open(os.path.join(folder, collect.COMPLETE)))["task_episodes"] == 2
