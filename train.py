@@ -148,6 +148,11 @@ def export_agent(run_dir, out_dir):
     ckpt = collect.load_checkpoint(os.path.join(run_dir, "checkpoint.pt"))
     half = lambda t: t.half() if t.is_floating_point() else t
     agent = {k: ckpt[k] for k in ("config", "step", "encoder", "obs_shape", "action_dim", "p_dim")}
+    # D_body is not shipped: the agent reads (and collects) demos in its preset's default data folder, wherever it was
+    # trained; that folder is kept as trained_data
+    train_cfg = agent["config"]["train"]
+    agent["config"] = {**agent["config"], "train": {**train_cfg, "data": collect.DATA[train_cfg["preset"]]}}
+    agent["trained_data"] = train_cfg["data"]
     agent["models"] = {name: {k: half(t) for k, t in sd.items()} for name, sd in ckpt["models"].items()}
     os.makedirs(out_dir, exist_ok=True)
     path = os.path.join(out_dir, "checkpoint.pt")

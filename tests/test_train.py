@@ -114,6 +114,8 @@ def test_exported_agent_loads_weights_only_and_acts_like_its_run(smoke_run, tmp_
     path = train.export_agent(smoke_run, str(tmp_path / "agents" / "walker"))
     agent = torch.load(path, weights_only=True)
     assert "optims" not in agent and all(t.dtype == torch.float16 for sd in agent["models"].values() for t in sd.values() if t.is_floating_point())
+    # D_body is not shipped: the agent reads demos from its preset's default folder; where it trained is kept
+    assert agent["config"]["train"]["data"] == collect.DATA["smoke"] and agent["trained_data"] == train.load_run(smoke_run)[0]["train"].data
     _, run_models, _ = train.load_run(smoke_run)
     _, agent_models, _ = train.load_run(os.path.dirname(path))
     for name, model in run_models.items():
