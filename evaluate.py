@@ -26,6 +26,7 @@ from tqdm import tqdm
 
 import collect
 import envs
+import policy
 
 BODY_TASKS = ("stand", "walk", "run")  # the tasks of D_body, whose average is the benchmark's number (jump held out)
 
@@ -69,6 +70,30 @@ def open_loop_metrics(wm, vae, batch, context):
     feats, keep = imagined = wm.open_loop(batch, context)  # imagined once, read by both decoders
     cos = (vae.decode(feats) * batch["p"][:, context:]).sum(-1)[keep]
     return {"open_loop": wm.open_loop_error(batch, context, imagined), "open_loop_p_cos": cos.mean().item() if len(cos) else float("nan")}
+
+
+@torch.no_grad()
+def reachable_goal_reward(wm, dist_net, actor, post, goal_feat, is_first, horizon, t0=10, seed=0):
+    """Eq. 4's imagined goal reward -d(s_k, g) on goals the agent can reach (ours, a diagnostic): from s_t0 of each
+    batch segment with no episode start after t0, imagine `horizon` steps towards g = q(s | p_{t0 + horizon}), the
+    goal encoder's state of the frame the data reached; mean -d(s_k, g) over the imagined steps, for the actor's mean
+    action given g, the actor given another segment's goal instead (what ignoring g would earn), and uniform random
+    actions (seeded apart: the training RNG is untouched). The reward of training (`reward`) averages over goals half
+    out of reach and hardly moves; this one starts at the random actions' level with a fresh actor.
+    post dict of (B, T, .), goal_feat (B, T, F), is_first (B, T) -> {'reward_reachable': [own, other goal, random]}."""
+    whole = ~is_first[:, t0 + 1 : t0 + horizon + 1].any(1)
+    start = {k: v[whole, t0] for k, v in post.items()}
+    goal = goal_feat[whole, t0 + horizon]
+    random_action = lambda feat: torch.rand(len(feat), actor.action_dim, device=feat.device) * 2 - 1
+    out = []
+    with torch.random.fork_rng(devices=[goal.device] if goal.is_cuda else []):  # the prior's samples and random actions
+        torch.manual_seed(seed)
+        for given, act in ((goal, None), (goal.roll(1, 0), None), (None, random_action)):  # always scored against goal
+            goal_in = None if given is None else actor.goal_input(given)
+            act = act or (lambda feat: actor(feat, given, deterministic=True, goal_in=goal_in)[0])
+            states, _ = wm.imagine(start, act, horizon)
+            out.append(policy.goal_reward(dist_net, wm.feat(states), goal).mean().item())
+    return {"reward_reachable": out}
 
 
 @torch.no_grad()
@@ -139,7 +164,8 @@ def write_goal_reaching(run_dir, scores):
 
 
 def learning_curve(run_dir):
-    """runs/<name>/learning_curve.png from metrics.jsonl: Eq. 4's imagined goal reward (both readings, policy.policy_losses), Eq. 7's distances of encoder
+    """runs/<name>/learning_curve.png from metrics.jsonl: Eq. 4's imagined goal reward (both readings, policy.policy_losses, and
+    on reachable goals, reachable_goal_reward), Eq. 7's distances of encoder
     goals 1 and 15 steps ahead, and the world model's and goal VAE's losses, against updates."""
     import matplotlib
 
@@ -148,7 +174,9 @@ def learning_curve(run_dir):
 
     rows = [json.loads(line) for line in open(os.path.join(run_dir, "metrics.jsonl"))]
     fig, axes = plt.subplots(1, 3, figsize=(13, 3.2))
-    series = [("Eq. 4 imagined goal reward", [("reward_distance", "-d(s, g)"), ("reward_feature", "cos(p_hat(s), p_hat(g))")]),
+    series = [("Eq. 4 imagined goal reward", [("reward_distance", "-d(s, g)"), ("reward_feature", "cos(p_hat(s), p_hat(g))"),
+                                              ("reward_reachable", "-d, reachable g", 0), ("reward_reachable", "-d, pi given another g", 1),
+                                              ("reward_reachable", "-d, reachable g, random actions", 2)]),
               ("Eq. 7: d(s_t, q(s | p_t+k))", [("d_enc", "k = 1", 0), ("d_enc", "k = 15", 2), ("d_enc", "other episode", 4)]),
               ("losses", [("wm_loss", "Eq. 2 world model"), ("goal_loss", "Eq. 3 goal VAE"), ("bc_loss", "hindsight BC")])]
     for ax, (title, keys) in zip(axes, series):

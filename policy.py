@@ -96,7 +96,7 @@ class Actor(nn.Module):
 
     def __init__(self, cfg, feat_dim, goal_dim, action_dim):
         super().__init__()
-        self.cfg, self.goal_dim = cfg, goal_dim
+        self.cfg, self.goal_dim, self.action_dim = cfg, goal_dim, action_dim
         self.net = mlp(feat_dim + goal_dim, cfg.units, 2 * action_dim, cfg.actor_layers)
 
     def goal_input(self, goal):

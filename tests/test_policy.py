@@ -1,5 +1,6 @@
 """policy.py: TD(lambda) against the n-step definition, the tanh-Gaussian log-probability against torch.distributions,
 no gradient from the actor loss into the world model, goal sampling, and phase 2's gradient to the goal only."""
+import numpy as np
 import pytest
 import torch
 from torch.distributions import Normal, TanhTransform, TransformedDistribution
@@ -285,3 +286,39 @@ def test_feature_reward_is_the_cosine_of_the_goal_decoders_features():
     cfg = P.ActorCriticConfig(**P.PRESETS["smoke"], reward="features")
     with pytest.raises(ValueError, match="--ac-reward 'features'"):
         P.policy_losses(None, None, None, None, None, None, {}, goal, cfg)
+
+
+class OracleActor:
+    """Steps straight towards the goal it is given: what reachable_goal_reward needs of an actor."""
+
+    action_dim = 2
+
+    def goal_input(self, goal):
+        return goal
+
+    def __call__(self, feat, goal, deterministic=False, goal_in=None):
+        step = (goal_in - feat) / 0.2  # ToyWorld moves 0.2 a: a step of at most 0.2
+        return step / step.norm(dim=-1, keepdim=True).clamp(min=1), None
+
+
+def test_reachable_goal_reward_scores_the_goal_of_the_data_against_ignoring_it_and_random_actions():
+    """Segments that move 0.1 per step in their own direction: the goal 15 steps ahead is 1.5 away and an actor
+    steering to it arrives; the same actor given another segment's goal, or random actions, score lower. The training
+    RNG is left where it was."""
+    import evaluate
+
+    torch.manual_seed(0)
+    B, T, H = 16, 30, 15
+    angle = torch.rand(B) * 2 * torch.pi
+    pos = 0.1 * torch.arange(T)[None, :, None] * torch.stack([angle.cos(), angle.sin()], -1)[:, None]  # (B, T, 2)
+    is_first = torch.zeros(B, T, dtype=torch.bool)
+    is_first[:, 0] = True
+    dist = lambda feat, goal: (feat - goal).norm(dim=-1)
+    state = torch.get_rng_state()
+    own, other, random = evaluate.reachable_goal_reward(ToyWorld(), dist, OracleActor(), {"deter": pos}, pos, is_first, H)["reward_reachable"]
+    assert torch.equal(torch.get_rng_state(), state)
+    steps = torch.arange(1, H + 1).float()
+    assert own == pytest.approx(-(1.5 - 0.2 * steps).clamp(min=0).mean().item(), abs=1e-5)  # arrives at step 8
+    assert own > random + 0.5 and own > other + 0.5, (own, other, random)
+    is_first[:, 20] = True  # an episode starts inside every segment's window: no segment qualifies
+    assert np.isnan(evaluate.reachable_goal_reward(ToyWorld(), dist, OracleActor(), {"deter": pos}, pos, is_first, H)["reward_reachable"][0])
