@@ -341,7 +341,7 @@ def pretrain(cfgs, run_dir, resume):
             metrics.update(step=step, updates_per_s=tc.log_every / (time.time() - t0), **evaluate.open_loop_metrics(wm, vae, data.sample(wc.batch, rng, device), wc.seq_len // 2))
             if wc.seq_len > 40:  # d at 1 / 5 / 15 / 30 steps ahead and for another segment (distance.distance_profile)
                 metrics.update(distance.distance_profile(dist_net, post_feat, goal_feat, batch["is_first"]))
-            if step >= tc.policy_start and wc.seq_len > 10 + ac.horizon:  # from the fresh actor's row on
+            if step >= tc.policy_start and wc.seq_len > ac.horizon:  # from the fresh actor's row on
                 metrics.update(evaluate.reachable_goal_reward(wm, dist_net, models["actor"], post, goal_feat, batch["is_first"], ac.horizon, seed=step))
             t0 = time.time()
             log.write(json.dumps(metrics) + "\n")

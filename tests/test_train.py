@@ -20,6 +20,7 @@ def test_smoke_run_writes_checkpoint_metrics_and_goal_reaching(smoke_run):
     assert ckpt["config"]["wm"]["obs"] == "state" and ckpt["config"]["wm"]["deter"] == 16  # the smoke preset, resolved
     lines = [json.loads(l) for l in open(os.path.join(smoke_run, "metrics.jsonl"))]
     assert [l["step"] for l in lines] == [2, 4, 6] and "actor_loss" in lines[-1] and "open_loop" in lines[-1] and -1 <= lines[-1]["open_loop_p_cos"] <= 1
+    assert all(len(l["reward_reachable"]) == 3 for l in lines)  # from the fresh actor's row (policy_start 2) on
     scores = json.load(open(os.path.join(smoke_run, "goal_reaching.json")))
     assert list(scores) == ["stand", "walk", "run", "jump"]
     assert all(len(s["policy"]) == len(s["random"]) == 2 for s in scores.values())  # smoke: 2 demos x 1 episode
