@@ -174,10 +174,11 @@ def learning_curve(run_dir):
     import matplotlib.pyplot as plt
 
     rows = [json.loads(line) for line in open(os.path.join(run_dir, "metrics.jsonl"))]
-    fig, axes = plt.subplots(1, 3, figsize=(13, 3.2))
-    series = [("Eq. 4 imagined goal reward", [("reward_distance", "-d(s, g)"), ("reward_feature", "cos(p_hat(s), p_hat(g))"),
-                                              ("reward_reachable", "-d, reachable g", 0), ("reward_reachable", "-d, pi given another g", 1),
-                                              ("reward_reachable", "-d, reachable g, random actions", 2)]),
+    fig, axes = plt.subplots(1, 4, figsize=(17, 3.2))
+    series = [("Eq. 4 imagined goal reward -d(s, g)", [("reward_distance", "training goals"), ("reward_reachable", "reachable g", 0),
+                                                       ("reward_reachable", "reachable g, pi given another g", 1),
+                                                       ("reward_reachable", "reachable g, random actions", 2)]),
+              ("its feature reading", [("reward_feature", "cos(p_hat(s), p_hat(g)), training goals")]),
               ("Eq. 7: d(s_t, q(s | p_t+k))", [("d_enc", "k = 1", 0), ("d_enc", "k = 15", 2), ("d_enc", "other episode", 4)]),
               ("losses", [("wm_loss", "Eq. 2 world model"), ("goal_loss", "Eq. 3 goal VAE"), ("bc_loss", "hindsight BC")])]
     for ax, (title, keys) in zip(axes, series):
