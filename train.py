@@ -155,6 +155,15 @@ def export_agent(run_dir, out_dir):
     agent["trained_data"] = train_cfg["data"]
     agent["models"] = {name: {k: half(t) for k, t in sd.items()} for name, sd in ckpt["models"].items()}
     os.makedirs(out_dir, exist_ok=True)
+    # what phase 2 and the benchmark wrote for the agent replaced here would mix with the new agent's (tables.py matches
+    # rows by demo and settings, not by weights): moved, never deleted, to <out_dir>/previous_<n>/
+    made = [f for f in ("results.jsonl", "tables.md", "goal_reaching.json", "imitate") if os.path.exists(os.path.join(out_dir, f))]
+    if made:
+        old = os.path.join(out_dir, f"previous_{sum(f.startswith('previous_') for f in os.listdir(out_dir))}")
+        os.makedirs(old)
+        for f in made:
+            os.replace(os.path.join(out_dir, f), os.path.join(old, f))
+        print(f"moved the replaced agent's {', '.join(made)} to {old}")
     path = os.path.join(out_dir, "checkpoint.pt")
     collect.atomic_write(path, lambda f: torch.save(agent, f))
     return path

@@ -122,6 +122,12 @@ def test_exported_agent_loads_weights_only_and_acts_like_its_run(smoke_run, tmp_
     for name, model in run_models.items():
         for (k, a), b in zip(model.state_dict().items(), agent_models[name].state_dict().values()):
             assert b.dtype == a.dtype and torch.allclose(a, b, rtol=1e-3, atol=1e-4), (name, k)
+    # exporting over an agent moves what was measured on the old one aside, so no table mixes the two
+    with open(os.path.join(os.path.dirname(path), "results.jsonl"), "w") as f:
+        f.write('{"method": "GIIL-ZS"}\n')
+    train.export_agent(smoke_run, os.path.dirname(path))
+    assert not os.path.exists(os.path.join(os.path.dirname(path), "results.jsonl"))
+    assert open(os.path.join(os.path.dirname(path), "previous_0", "results.jsonl")).read() == '{"method": "GIIL-ZS"}\n'
     # phase 2's default: the user's own run when there is one, else the shipped agent, saying which
     monkeypatch.chdir(tmp_path)
     assert train.resolve_run("walker", "cpu") == os.path.join("agents", "walker")
