@@ -207,10 +207,14 @@ def prepare_data(cfgs):
     """D_body of the run (collected first where incomplete) and the body's own demos (the benchmark's goals):
     -> encoder, training Segments, held-out episodes, (obs_shape, action_dim, p_dim)."""
     tc, wc = cfgs["train"], cfgs["wm"]
-    folder = os.path.join(tc.data, tc.env)
-    if not os.path.exists(os.path.join(folder, collect.COMPLETE)):  # missing, or a collection killed half-way
-        print(f"D_body at {folder} is not complete: collecting what is missing (python collect.py --env {tc.env} --preset {tc.preset})")
-        collect.collect_body(tc.env, collect.CollectConfig(**collect.PRESETS[tc.preset]), tc.data, os.cpu_count(), tc.encoder)
+    folder, want = os.path.join(tc.data, tc.env), collect.CollectConfig(**collect.PRESETS[tc.preset])
+    complete = os.path.join(folder, collect.COMPLETE)
+    has = json.load(open(complete)) if os.path.exists(complete) else {}  # missing, or a collection killed half-way
+    fewer = [k for k in ("explore_episodes", "task_episodes") if has.get(k, 0) < getattr(want, k)]  # a smaller, older D_body grows
+    if fewer:
+        print(f"D_body at {folder} is not complete ({', '.join(f'{k} {has.get(k, 0)} < {getattr(want, k)}' for k in fewer)}): "
+              f"collecting what is missing (python collect.py --env {tc.env} --preset {tc.preset})")
+        collect.collect_body(tc.env, want, tc.data, os.cpu_count(), tc.encoder)
     if not all(os.path.isdir(os.path.join(tc.data, "demos", f"{tc.env}_{task}_side")) for task in envs.TASKS):
         print(f"{tc.env}'s own demos (the goals of the goal-reaching benchmark, evaluate.py) missing: collecting them")
         collect.collect_demos(collect.CollectConfig(**collect.PRESETS[tc.preset]), tc.data, os.cpu_count(), tc.encoder, demos=[(tc.env, task) for task in envs.TASKS])

@@ -72,6 +72,22 @@ def test_segments_stay_inside_episodes(smoke_data):
         assert np.array_equal(states[first : first + 8], batch["state"][b].numpy())
 
 
+def test_a_smaller_older_d_body_grows_to_the_preset_before_training(smoke_data, tmp_path, monkeypatch):
+    """A D_body collected when the preset asked for fewer episodes per task is completed, not trained on as it is;
+    what exists is kept."""
+    root = str(tmp_path / "data")
+    shutil.copytree(smoke_data, root)
+    folder = os.path.join(root, "walker")
+    before = {n: os.path.getmtime(os.path.join(folder, n)) for n in os.listdir(folder) if n.endswith(".npz")}
+    monkeypatch.setitem(collect.PRESETS, "smoke", {**collect.PRESETS["smoke"], "task_episodes": 2})
+    cfgs = train.resolve_configs(train_args(data=root), "smoke")
+    _, data, held_out, _ = train.prepare_data(cfgs)
+    names = [n for n in os.listdir(folder) if n.endswith(".npz")]
+    assert len(names) == len(before) + len(collect.BODY_TASKS) and len(data.lengths) + len(held_out) == len(names)
+    assert all(os.path.getmtime(os.path.join(folder, n)) == t for n, t in before.items())
+    assert json.load(open(os.path.join(folder, collect.COMPLETE)))["task_episodes"] == 2
+
+
 def test_paper_preset_builds_pixel_dreamer_sizes_and_updates(smoke_data, tmp_path):
     """The paper's sizes (pixels, GRU 1024, CNN depth 48) run a couple of updates on CPU with a tiny batch."""
     small = {"steps": 2, "policy_start": 1, "eval_episodes": 1, "eval_steps": 3, "holdout_every": 3, "log_every": 1,
