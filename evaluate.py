@@ -218,12 +218,35 @@ def across_runs(run_dirs):
     return lines
 
 
+def reachable_across_runs(run_dirs, last=5):
+    """reward_reachable (reachable_goal_reward) of each run's metrics.jsonl: its first row (the fresh actor) and the mean
+    of its last `last` rows, then mean +- s.e. over the runs; [] when no run logged it."""
+    first, end = [], []
+    for run_dir in run_dirs:
+        rows = [json.loads(line) for line in open(os.path.join(run_dir, "metrics.jsonl"))]
+        rows = [r["reward_reachable"] for r in rows if "reward_reachable" in r]
+        if rows:
+            first.append(rows[0])
+            end.append(np.mean(rows[-last:], 0))
+    if not first:
+        return []
+    first, end = np.array(first), np.array(end)
+    cell = lambda x: f"{x.mean():.3f} +- {stderr(x):.3f}"
+    return ["| imagined -d on reachable goals | actor given g | actor given another g | random actions |", "|---|---|---|---|",
+            f"| first row (fresh actor), {len(first)} runs | " + " | ".join(cell(first[:, k]) for k in range(3)) + " |",
+            f"| last {last} rows | " + " | ".join(cell(end[:, k]) for k in range(3)) + " |",
+            f"| last minus first, paired | {cell(end[:, 0] - first[:, 0])} | given g minus given another g, last: "
+            f"{cell(end[:, 0] - end[:, 1])} | given g minus random, last: {cell(end[:, 0] - end[:, 2])} |"]
+
+
 if __name__ == "__main__":
     import argparse
 
-    parser = argparse.ArgumentParser(description="Goal reaching of several phase-1 runs (e.g. training seeds), mean +- s.e. over runs.")
+    parser = argparse.ArgumentParser(description="Goal reaching of several phase-1 runs (e.g. training seeds), and their imagined goal "
+                                     "reward on reachable goals, mean +- s.e. over runs.")
     parser.add_argument("runs", nargs="+", help="run folders with goal_reaching.json (train.py writes it)")
     try:
-        print("\n".join(across_runs(parser.parse_args().runs)))
+        runs = parser.parse_args().runs
+        print("\n".join(across_runs(runs) + [""] + reachable_across_runs(runs)))
     except FileNotFoundError as error:
         raise SystemExit(f"error: {error}")

@@ -46,3 +46,23 @@ def test_run_episodes_sums_each_environment_s_true_reward(smoke_run):
     assert np.allclose(returns, total)
     scores = json.load(open(os.path.join(smoke_run, "goal_reaching.json")))
     assert set(scores) == {"stand", "walk", "run", "jump"}
+
+
+def test_reachable_reward_across_runs_by_hand(tmp_path):
+    """First row against the mean of the last rows, over runs: rows without reward_reachable (before the actor) skipped."""
+    runs = []
+    for k, rows in enumerate([[[-0.4, -0.4, -0.4], [-0.3, -0.35, -0.5], [-0.1, -0.35, -0.5]], [[-0.5, -0.5, -0.5], [-0.4, -0.4, -0.6]]]):
+        folder = tmp_path / f"r{k}"
+        folder.mkdir()
+        with open(folder / "metrics.jsonl", "w") as f:
+            f.write(json.dumps({"step": 100}) + "\n")
+            f.writelines(json.dumps({"reward_reachable": r}) + "\n" for r in rows)
+        runs.append(str(folder))
+    table = evaluate.reachable_across_runs(runs, last=2)
+    # run 0: first -0.4, last two -0.2 / -0.35 / -0.5; run 1: first -0.5, last two -0.45 / -0.45 / -0.55
+    assert table[2] == "| first row (fresh actor), 2 runs | -0.450 +- 0.050 | -0.450 +- 0.050 | -0.450 +- 0.050 |"
+    assert table[3] == "| last 2 rows | -0.325 +- 0.125 | -0.400 +- 0.050 | -0.525 +- 0.025 |"
+    assert table[4].startswith("| last minus first, paired | 0.125 +- 0.075 |")  # (0.2 + 0.05) / 2
+    (tmp_path / "old").mkdir()  # a run from before the diagnostic
+    (tmp_path / "old" / "metrics.jsonl").write_text(json.dumps({"step": 100}) + "\n")
+    assert evaluate.reachable_across_runs([str(tmp_path / "old")]) == []
