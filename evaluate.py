@@ -219,8 +219,9 @@ def across_runs(run_dirs):
 
 
 def reachable_across_runs(run_dirs, last=5):
-    """reward_reachable (reachable_goal_reward) of each run's metrics.jsonl: its first row (the fresh actor) and the mean
-    of its last `last` rows, then mean +- s.e. over the runs; [] when no run logged it."""
+    """reward_reachable (reachable_goal_reward) of each run's metrics.jsonl: its first row (the fresh actor's, unless the
+    run was resumed from one that did not log it) and the mean of its last `last` rows, mean +- s.e. over the runs; []
+    when no run logged it."""
     first, end = [], []
     for run_dir in run_dirs:
         rows = [json.loads(line) for line in open(os.path.join(run_dir, "metrics.jsonl"))]
@@ -233,7 +234,7 @@ def reachable_across_runs(run_dirs, last=5):
     first, end = np.array(first), np.array(end)
     cell = lambda x: f"{x.mean():.3f} +- {stderr(x):.3f}"
     return ["| imagined -d on reachable goals | actor given g | actor given another g | random actions |", "|---|---|---|---|",
-            f"| first row (fresh actor), {len(first)} runs | " + " | ".join(cell(first[:, k]) for k in range(3)) + " |",
+            f"| first row (a fresh actor), {len(first)} runs | " + " | ".join(cell(first[:, k]) for k in range(3)) + " |",
             f"| last {last} rows | " + " | ".join(cell(end[:, k]) for k in range(3)) + " |",
             f"| last minus first, paired | {cell(end[:, 0] - first[:, 0])} | given g minus given another g, last: "
             f"{cell(end[:, 0] - end[:, 1])} | given g minus random, last: {cell(end[:, 0] - end[:, 2])} |"]

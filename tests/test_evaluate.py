@@ -60,7 +60,7 @@ def test_reachable_reward_across_runs_by_hand(tmp_path):
         runs.append(str(folder))
     table = evaluate.reachable_across_runs(runs, last=2)
     # run 0: first -0.4, last two -0.2 / -0.35 / -0.5; run 1: first -0.5, last two -0.45 / -0.45 / -0.55
-    assert table[2] == "| first row (fresh actor), 2 runs | -0.450 +- 0.050 | -0.450 +- 0.050 | -0.450 +- 0.050 |"
+    assert table[2] == "| first row (a fresh actor), 2 runs | -0.450 +- 0.050 | -0.450 +- 0.050 | -0.450 +- 0.050 |"
     assert table[3] == "| last 2 rows | -0.325 +- 0.125 | -0.400 +- 0.050 | -0.525 +- 0.025 |"
     assert table[4].startswith("| last minus first, paired | 0.125 +- 0.075 |")  # (0.2 + 0.05) / 2
     (tmp_path / "old").mkdir()  # a run from before the diagnostic
