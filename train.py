@@ -210,7 +210,11 @@ def prepare_data(cfgs):
     folder, want = os.path.join(tc.data, tc.env), collect.CollectConfig(**collect.PRESETS[tc.preset])
     complete = os.path.join(folder, collect.COMPLETE)
     has = json.load(open(complete)) if os.path.exists(complete) else {}  # missing, or a collection killed half-way
-    fewer = [k for k in ("explore_episodes", "task_episodes") if has.get(k, 0) < getattr(want, k)]  # a smaller, older D_body grows
+    counts = ("explore_episodes", "task_episodes")
+    same_kind = all(has.get(k) == v for k, v in dataclasses.asdict(want).items() if k not in counts)
+    # a smaller D_body of the same recipe (the preset's older, smaller default) grows; another kind passed by --data
+    # (e.g. shorter episodes) is used as it is
+    fewer = [k for k in counts if has.get(k, 0) < getattr(want, k)] if same_kind or not has else []
     if fewer:
         print(f"D_body at {folder} is not complete ({', '.join(f'{k} {has.get(k, 0)} < {getattr(want, k)}' for k in fewer)}): "
               f"collecting what is missing (python collect.py --env {tc.env} --preset {tc.preset})")
