@@ -221,7 +221,7 @@ def prepare_data(cfgs):
         collect.collect_body(tc.env, want, tc.data, os.cpu_count(), tc.encoder)
     if not all(os.path.isdir(os.path.join(tc.data, "demos", f"{tc.env}_{task}_side")) for task in envs.TASKS):
         print(f"{tc.env}'s own demos (the goals of the goal-reaching benchmark, evaluate.py) missing: collecting them")
-        collect.collect_demos(collect.CollectConfig(**collect.PRESETS[tc.preset]), tc.data, os.cpu_count(), tc.encoder, demos=[(tc.env, task) for task in envs.TASKS])
+        collect.collect_demos(want, tc.data, os.cpu_count(), tc.encoder, demos=[(tc.env, task) for task in envs.TASKS])
     encoder = load_encoder(tc.encoder)
     episodes = collect.load_folder(folder, (wc.obs, "action", "is_first", "p"), encoder=encoder.name)
     held_out = episodes[:: tc.holdout_every]
