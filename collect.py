@@ -57,7 +57,7 @@ class CollectConfig:
 
 PRESETS = {
     "smoke": dict(explore_episodes=2, task_episodes=1, demo_episodes=2, episode_steps=20),
-    "cpu": dict(),  # the defaults: 320 episodes, collected in ~6 min on 2 cores
+    "cpu": dict(),  # the defaults: 320 episodes, ~8 min on 2 idle cores (200 took 5 min; docs/experiments.md)
     "paper": dict(explore_episodes=2000, task_episodes=1000),
 }
 # Where each preset's datasets go by default (--data): the smoke preset's 20-step episodes never share a folder with the
