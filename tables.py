@@ -123,7 +123,8 @@ def table(run_dir, ic, settings=SETTINGS, demos_per_cell=10, shard=(0, 1), metho
 
 
 def markdown_tables(agent, rows):
-    """Tables 1/2 (all tasks) and 4-11 (per task) for this agent: ours next to the paper's, mean +- s.e."""
+    """Tables 1/2 (all tasks) and 4-11 (per task) for this agent: ours next to the paper's, mean +- s.e., and GIIL-FT
+    minus GIIL-ZS (demo 0) paired by cell and seed (both are scored on the same evaluation seeds)."""
     def cell(scores):
         return f"{np.mean(scores):.1f} +- {evaluate.stderr(scores):.1f}" if scores else "-"
 
@@ -132,12 +133,16 @@ def markdown_tables(agent, rows):
     out = []
     for task in ("all",) + envs.TASKS:
         title = f"{agent} agent, {'all tasks (as Table 1/2)' if task == 'all' else task}: normalised score, mean +- s.e."
-        out += [f"### {title}", "", "| setting | " + " | ".join(f"{m} (ours)" for m in methods) + " | " + " | ".join(f"{m} (paper)" for m in paper_methods) + " |",
-                "|---|" + "---|" * (len(methods) + len(paper_methods))]
-        pick = lambda m, ws: [r["score"] for r in rows if r["method"] == m and r["setting"] in ws and (task == "all" or r["task"] == task)]
+        out += [f"### {title}", "", "| setting | " + " | ".join(f"{m} (ours)" for m in methods) + " | FT - ZS (demo 0), paired | "
+                + " | ".join(f"{m} (paper)" for m in paper_methods) + " |", "|---|" + "---|" * (len(methods) + 1 + len(paper_methods))]
+        mine = lambda m, ws: {(r["demo"], r["view"], r["seed"]): r["score"] for r in rows
+                              if r["method"] == m and r["setting"] in ws and (task == "all" or r["task"] == task)}
         # "w/o SE-SV" the paper's way: the mean over the other three settings' results
         for name, ws in [(w, [w]) for w in SETTINGS] + [("Average", SETTINGS), ("Average w/o SE-SV", SETTINGS[1:])]:
             paper = [np.mean([PAPER[agent][task][SETTINGS.index(w)][PAPER_METHODS.index(m)] for w in ws]) for m in paper_methods]
-            out.append(f"| {name} | " + " | ".join(cell(pick(m, ws)) for m in methods) + " | " + " | ".join(f"{p:.2f}" for p in paper) + " |")
+            ft, zs0 = mine("GIIL-FT", ws), mine("GIIL-ZS (demo 0)", ws)
+            gain = [ft[k] - zs0[k] for k in ft if k in zs0]  # what finetuning adds: the same evaluation seeds, seed by seed
+            out.append(f"| {name} | " + " | ".join(cell(list(mine(m, ws).values())) for m in methods) + f" | {cell(gain)} | "
+                       + " | ".join(f"{p:.2f}" for p in paper) + " |")
         out.append("")
     return "\n".join(out)

@@ -69,8 +69,8 @@ def test_baselines_join_the_table_as_columns_and_are_not_rerun(smoke_run, tmp_pa
     assert {r["method"] for r in rows} == {"GenRL", "AIME-NoB"} and {(r["task"], r["setting"]) for r in rows} == {("stand", "SE-SV")}
     assert len(rows) == sum(seeds.values())  # each baseline's seeds, no GIIL (not asked for)
     text = open(os.path.join(run, "tables.md")).read()
-    assert "| GenRL (ours) | AIME-NoB (ours) | GIIL-ZS (paper) | GIIL-FT (paper) | GenRL (paper) | AIME-NoB (paper) |" in text
-    assert "| SE-SV | - | - | - | " in text and "| 42.52 | 68.10 | 86.05 | 84.80 |" in text  # GIIL not run; the paper's walker Table 1
+    assert "| GenRL (ours) | AIME-NoB (ours) | FT - ZS (demo 0), paired | GIIL-ZS (paper) | GIIL-FT (paper) | GenRL (paper) | AIME-NoB (paper) |" in text
+    assert "| SE-SV | - | - | - | " in text and "| - | 42.52 | 68.10 | 86.05 | 84.80 |" in text  # GIIL not run; the paper's walker Table 1
     tables.table(run, smoke, methods=("genrl", "aime-nob"), **one_cell)
     assert len(tables.load_results(run)) == len(rows)  # nothing missing: nothing runs again
     tables.table(run, smoke, methods=("giil",), **one_cell)
@@ -78,3 +78,16 @@ def test_baselines_join_the_table_as_columns_and_are_not_rerun(smoke_run, tmp_pa
     assert "| GenRL (ours) | AIME-NoB (ours) |" in open(os.path.join(run, "tables.md")).read()  # the baselines' cells stay
     with pytest.raises(ValueError, match="--methods dreamer: choose from giil, genrl, aime-nob"):
         tables.table(run, SMOKE, methods=("giil", "dreamer"))
+
+
+def test_finetuning_gain_is_paired_by_cell_and_seed():
+    """FT - ZS (demo 0) pairs the rows of one cell and seed; a seed without its partner, or another cell's, is left out."""
+    row = lambda method, seed, score, task="walk", setting="CE-SV": dict(method=method, seed=seed, score=score, task=task, setting=setting,
+                                                                         demo=f"stickman_{task}", view="side")
+    rows = [row("GIIL-FT", 0, 50.0), row("GIIL-ZS (demo 0)", 0, 40.0), row("GIIL-FT", 1, 60.0), row("GIIL-ZS (demo 0)", 1, 40.0),
+            row("GIIL-FT", 2, 90.0),  # no ZS (demo 0) partner
+            row("GIIL-FT", 0, 10.0, task="run"), row("GIIL-ZS (demo 0)", 0, 30.0, task="run")]
+    text = tables.markdown_tables("walker", rows)
+    walk = text.split("### walker agent, walk")[1].split("###")[0]
+    assert "| CE-SV | - | 40.0 +- 0.0 | 66.7 +- 12.0 | 15.0 +- 5.0 | 12.68 | 92.11 |" in walk
+    assert "| CE-SV | - | 36.7 +- 3.3 | 52.5 +- 16.5 | 3.3 +- 12.0 | " in text.split("###")[1]  # all tasks: +10, +20, -20
