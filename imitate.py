@@ -259,8 +259,8 @@ def imitate(run_dir, demo, view, finetune, ic, zero_shot=True):
 
     with torch.no_grad():
         goals = [models["goal_vae"].goal(torch.as_tensor(d["p"][-1], device=device)) for d in demos]  # GIIL-ZS: g = q(s | p_T)
-    t0 = time.time()
     for k, goal in enumerate(tqdm(goals if zero_shot else [], desc=f"GIIL-ZS {demo} {view}")):
+        t0 = time.time()  # each row's own time (rows before 2026-11-22 counted from the first demo's start)
         evaluate_goal("GIIL-ZS", k, goal, demos[k]["pixels"])
     if finetune:
         psi_star = {k: {n: t.clone() for n, t in m.state_dict().items()} for k, m in models.items()}  # clones: optimisers step in place
