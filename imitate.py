@@ -260,13 +260,14 @@ def imitate(run_dir, demo, view, finetune, ic, zero_shot=True):
     with torch.no_grad():
         goals = [models["goal_vae"].goal(torch.as_tensor(d["p"][-1], device=device)) for d in demos]  # GIIL-ZS: g = q(s | p_T)
     for k, goal in enumerate(tqdm(goals if zero_shot else [], desc=f"GIIL-ZS {demo} {view}")):
-        t0 = time.time()  # each row's own time (rows before 2026-11-22 counted from the first demo's start)
+        t0 = time.time()  # each row's own time, so a table's cost is the sum (rows before 2026-11-22 overlap)
         evaluate_goal("GIIL-ZS", k, goal, demos[k]["pixels"])
     if finetune:
         psi_star = {k: {n: t.clone() for n, t in m.state_dict().items()} for k, m in models.items()}  # clones: optimisers step in place
         for seed in range(ic.seeds):
             t0 = time.time()
             evaluate_goal("GIIL-ZS (demo 0)", seed, goals[0], demos[0]["pixels"])
+            t0 = time.time()  # GIIL-FT's time: finetuning and its evaluation
             for k, m in models.items():  # each seed starts from psi*
                 m.load_state_dict(psi_star[k])
             goal = finetune_goal(models, cfgs, ic, ot_cfg, torch.as_tensor(demos[0]["p"][-1], device=device), [d["p"] for d in demos], seed, device,
