@@ -78,8 +78,9 @@ def reachable_goal_reward(wm, dist_net, actor, post, goal_feat, is_first, horizo
     less in short segments) of each batch segment with no episode start after t0, imagine `horizon` steps towards
     g = q(s | p_{t0 + horizon}), the goal encoder's state of the frame the data reached; mean -d(s_k, g) over the
     imagined steps, for the actor's mean action given g, the actor given another segment's goal instead (what
-    ignoring g would earn), and uniform random actions (seeded apart: the training RNG is untouched). The reward of training (`reward`) averages over goals half
-    out of reach and hardly moves; this one starts at the random actions' level with a fresh actor.
+    ignoring g would earn), and uniform random actions (seeded apart: the training RNG is untouched). The reward of
+    training (`reward`) averages over goals half out of reach and hardly moves; this one starts at the random
+    actions' level with a fresh actor.
     post dict of (B, T, .), goal_feat (B, T, F), is_first (B, T) -> {'reward_reachable': [own, other goal, random]}."""
     t0 = min(10, is_first.shape[1] - 1 - horizon)
     whole = ~is_first[:, t0 + 1 : t0 + horizon + 1].any(1)
