@@ -105,13 +105,27 @@ def component_updates(preset="cpu", obs_dim=24, action_dim=6, p_dim=64):
 
 
 def bench_components():
-    """Each phase-1 component's update at the cpu preset, one thread."""
+    """Each phase-1 component's update at the cpu preset, one thread, with fp32 matmuls in MKL and through oneDNN
+    (rundir.fast_matmul, what train.py uses where it stays fp32), alternating in this one run."""
     import torch
 
+    import rundir
+
     torch.set_num_threads(1)
-    for name, update in component_updates().items():
-        seconds = timed(update, repeat=10, warmup=2)
-        print(f"phase 1        {name}: {1000 * seconds:.0f} ms")
+    fast = rundir.fast_matmul()
+    updates, times = component_updates(), {}
+    for _ in range(2):
+        for route in ("none", "bf16") if fast else ("none",):
+            torch.backends.mkldnn.matmul.fp32_precision = route
+            for name, update in updates.items():
+                times.setdefault((name, route), []).append(timed(update, repeat=5, warmup=2))
+    for name in updates:
+        line = f"phase 1        {name}: {1000 * np.mean(times[name, 'none']):.0f} ms"
+        if fast:
+            line += f" | oneDNN {1000 * np.mean(times[name, 'bf16']):.0f} ms | ratio {np.mean(times[name, 'none']) / np.mean(times[name, 'bf16']):.2f}x"
+        print(line)
+    if not fast:
+        print("phase 1        (oneDNN fp32 matmuls not used: on this CPU they would not compute in fp32, rundir.fast_matmul)")
 
 
 def train_updates_per_s(tree, data, threads, logs=4, every=10):

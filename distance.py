@@ -79,7 +79,9 @@ class DistanceNet(nn.Module):
     def forward(self, feat_i, feat_j):
         """feat_i, feat_j (..., F) -> (...)."""
         assert feat_i.shape[-1] == feat_j.shape[-1] == self.feat_dim, (feat_i.shape, feat_j.shape)
-        return self.distance(self.embed(feat_i), self.embed(feat_j))
+        feat_i, feat_j = torch.broadcast_tensors(feat_i, feat_j)
+        flat = lambda feat: feat.reshape(-1, self.feat_dim)  # 2-D: a sliced 3-D input made the decoder a batched matmul
+        return self.distance(self.embed(flat(feat_i)), self.embed(flat(feat_j))).reshape(feat_i.shape[:-1])
 
 
 def sample_pairs(episode, is_first, num, generator=None):

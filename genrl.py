@@ -182,6 +182,7 @@ def load_cell(run_dir, demo, view, data=None):
         cfgs["train"] = dataclasses.replace(cfgs["train"], data=data)
     tc = cfgs["train"]
     torch.set_num_threads(tc.threads)
+    rundir.fast_matmul()  # oneDNN where it is faster and still fp32 (rundir.py)
     folder = imitate.demo_folder(cfgs, demo, view)
     demos = collect.load_folder(folder, ("p",))
     for d in demos:

@@ -225,6 +225,7 @@ def imitate(run_dir, demo, view, finetune, ic, zero_shot=True):
     cfgs, models, ckpt = train.load_run(run_dir, device)
     tc = cfgs["train"]
     torch.set_num_threads(tc.threads)
+    rundir.fast_matmul()  # oneDNN where it is faster and still fp32 (rundir.py)
     folder = demo_folder(cfgs, demo, view)
     demo_body, task = demo.rsplit("_", 1)
     demos = collect.load_folder(folder, ("pixels", "p"))  # one collection: every demo of one length

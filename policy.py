@@ -80,8 +80,10 @@ def goal_share(linear, goal):
 
 
 def feat_share(linear, feat):
-    """W_f f of that layer: feat (..., F) -> (..., units)."""
-    return F.linear(feat, linear.weight[:, : feat.shape[-1]])
+    """W_f f of that layer: feat (..., F) -> (..., units). As one 2-D matmul: on a 3-D feat with this weight slice
+    (not contiguous) F.linear falls back to a batched matmul over a copy of the weight per row (measured 30% of the
+    actor-critic update's time)."""
+    return F.linear(feat.reshape(-1, feat.shape[-1]), linear.weight[:, : feat.shape[-1]]).reshape(*feat.shape[:-1], -1)
 
 
 def tanh_gaussian_log_prob(u, mean, std):

@@ -8,6 +8,7 @@ trim_jsonl    on resume, metrics.jsonl keeps only the rows up to the checkpoint'
               further updates, which the resumed run logs again)
 read_jsonl    the rows of a .jsonl log; a last line cut short by a kill is dropped, any other bad line is an error
 append_jsonl  one row, on a line of its own after such a cut line
+fast_matmul   fp32 matmuls through oneDNN where that is faster and still fp32 (checked on this CPU)
 """
 import contextlib
 import dataclasses
@@ -15,6 +16,8 @@ import fcntl
 import json
 import math
 import os
+
+import torch
 
 from collect import atomic_write
 
@@ -125,3 +128,27 @@ def append_jsonl(path, row):
             except json.JSONDecodeError:
                 f.truncate(len(text) - len(last))
         f.write((json.dumps(row) + "\n").encode())
+
+
+def fast_matmul():
+    """Routes fp32 matmuls (linear layers, the GRU cell, their backward) through oneDNN instead of MKL's sgemm, where
+    that still computes in fp32; returns whether it did. On AMD EPYC cores MKL takes a slow path, and oneDNN was 1.7-2.9x
+    faster per matmul at our layer sizes (relative error vs float64 1e-6, as MKL's; measured in bench.py --only phase1's
+    session, docs/experiments.md, Speed). PyTorch's switch for this is the mkldnn fp32_precision 'bf16': on a CPU with
+    native bf16 matmul (AMX) oneDNN really rounds the inputs to bf16 (error ~1e-3), so a probe matmul and its backward
+    are checked against float64 here and the switch is undone when their error is above fp32's."""
+    matmul = torch.backends.mkldnn.matmul
+    if not torch.backends.mkldnn.is_available():
+        return False
+    matmul.fp32_precision = "bf16"
+    g = torch.Generator().manual_seed(0)
+    a, b = torch.randn(256, 460, generator=g, requires_grad=True), torch.randn(256, 460, generator=g)
+    out = torch.nn.functional.linear(a, b)  # (256, 256), the shape of an actor layer on 256 imagination starts
+    out.backward(torch.ones_like(out))
+    with torch.no_grad():
+        exact = a.double() @ b.double().t()
+        error = max(((out.double() - exact).abs().max() / exact.abs().max()).item(),
+                    ((a.grad.double() - b.double().sum(0)).abs().max() / b.double().sum(0).abs().max()).item())
+    if error > 1e-5:  # fp32 gives ~1e-6 here, bf16 ~1e-3
+        matmul.fp32_precision = "none"
+    return error <= 1e-5

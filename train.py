@@ -274,6 +274,7 @@ def pretrain(cfgs, run_dir, resume):
     tc, wc, ac = cfgs["train"], cfgs["wm"], cfgs["ac"]
     device = "cuda" if torch.cuda.is_available() else "cpu"
     torch.set_num_threads(tc.threads)
+    rundir.fast_matmul()  # oneDNN where it is faster and still fp32 (rundir.py)
     # seeding: one block, everything from the run seed
     torch.manual_seed(tc.seed)
     rng = np.random.default_rng(tc.seed)
@@ -433,6 +434,7 @@ def main():
         device = "cuda" if torch.cuda.is_available() else "cpu"
         run_cfgs, models, _ = load_run(run_dir, device)
         torch.set_num_threads(tc.threads)
+        rundir.fast_matmul()  # oneDNN where it is faster and still fp32 (rundir.py)
         run_cfgs["train"] = dataclasses.replace(run_cfgs["train"], eval_episodes=tc.eval_episodes, eval_steps=tc.eval_steps, data=tc.data)
         report_goal_reaching(run_dir, models, run_cfgs, device)
     else:

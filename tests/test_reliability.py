@@ -340,3 +340,19 @@ def test_older_pickled_checkpoint_is_named_then_upgraded(smoke_run, tmp_path):
         f.write(b"PK\x03\x04 half a zip")
     with pytest.raises(ValueError, match=r"checkpoint.pt: not a readable checkpoint"):
         train.load_run(run)
+
+
+def test_fast_matmul_keeps_fp32_results():
+    """Whether or not oneDNN takes the fp32 matmuls on this CPU, a layer and its backward stay at fp32's error (a bf16
+    route would be ~1e-3)."""
+    try:
+        rundir.fast_matmul()
+        g = torch.Generator().manual_seed(1)
+        x, w = torch.randn(16, 50, 230, generator=g, requires_grad=True), torch.randn(256, 230, generator=g)
+        out = torch.nn.functional.linear(x[:, 1:], w)  # a sliced 3-D input, as the critic's
+        out.sum().backward()
+        exact = x.double()[:, 1:] @ w.double().t()
+        assert ((out.double() - exact).abs().max() / exact.abs().max()).item() < 1e-5
+        assert torch.allclose(x.grad[:, 1:].double(), w.double().sum(0).expand(16, 49, -1), rtol=1e-5, atol=1e-4)
+    finally:
+        torch.backends.mkldnn.matmul.fp32_precision = "none"
