@@ -327,6 +327,7 @@ def main():
     parser.add_argument("--warm-start", nargs="+", default=[], metavar="DST=SRC",
                         help="restart expert DST from expert SRC's networks (copy_member); pass it once, later --resume runs without it")
     parser.add_argument("--eval", action="store_true", help="score the committed final experts: 10 episodes each")
+    parser.add_argument("--history", action="store_true", help="with --eval: score every snapshot of experts/history instead (what D_body replays)")
     parser.add_argument("--pick-best", action="store_true", help="make the best snapshot of experts/history each task's final expert (keep_best)")
     parser.add_argument("--bounds", action="store_true", help="random-policy returns (Eq. 8's R_min) per body and task")
     for field, value in asdict(ExpertConfig()).items():
@@ -349,6 +350,13 @@ def main():
                     keep_best(load_expert(body, task, step), body, [task], step, cfg.final_episodes)
                 saved = collect.load_checkpoint(expert_path(body, task))
                 print(f"{body} {task}: final = step {saved['step']}, score {saved['score']:.1f}")
+        return
+    if args.eval and args.history:
+        print("| body | task | normalised score of each snapshot (training step: mean of 10 episodes) |\n|---|---|---|")
+        for body in [args.body] if args.body else envs.BODIES:
+            for task in [t for t in args.tasks if t in collect.BODY_TASKS]:
+                scores = [f"{step // 1000}k: {envs.normalized_score(task, evaluate(body, task, step=step).mean()):.0f}" for step in history_steps(body, task)]
+                print(f"| {body} | {task} | {', '.join(scores)} |")
         return
     if args.eval:
         bodies = [args.body] if args.body else envs.BODIES

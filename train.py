@@ -215,6 +215,10 @@ def prepare_data(cfgs):
     # a smaller D_body of the same recipe (the preset's older, smaller default) grows; another kind passed by --data
     # (e.g. shorter episodes) is used as it is
     fewer = [k for k in counts if has.get(k, 0) < getattr(want, k)] if same_kind or not has else []
+    if has and not same_kind:
+        other = [f"{k} {has.get(k)} (preset {v})" for k, v in dataclasses.asdict(want).items() if k not in counts and has.get(k) != v]
+        print(f"D_body at {folder} was collected with {', '.join(other)}: used as it is; `python collect.py --env {tc.env} "
+              f"--data <another folder>` collects the preset's")
     if fewer:
         print(f"D_body at {folder} is not complete ({', '.join(f'{k} {has.get(k, 0)} < {getattr(want, k)}' for k in fewer)}): "
               f"collecting what is missing (python collect.py --env {tc.env} --preset {tc.preset})")
