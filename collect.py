@@ -360,6 +360,13 @@ def collect_body(body, cfg, data="data", workers=2, encoder="default"):
         os.remove(os.path.join(folder, COMPLETE))
     run_jobs(jobs, encoder, workers, f"D_body {body}")
     atomic_write(os.path.join(folder, COMPLETE), lambda f: f.write(json.dumps(asdict(cfg)).encode()))
+    scores = {task: [] for task in BODY_TASKS}  # what cloning can reach: the task episodes' quality
+    for paths, job in jobs:
+        if job["kind"] in scores:
+            with np.load(paths[0]) as f:
+                scores[job["kind"]].append(envs.normalized_score(job["kind"], float(f["return"])))
+    print(f"D_body {body}: {len(jobs)} episodes; the task episodes' mean normalised score (Eq. 8) "
+          + ", ".join(f"{task} {np.mean(v):.1f}" for task, v in scores.items() if v))
     return folder
 
 
