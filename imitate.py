@@ -136,7 +136,7 @@ def multi_goal_loss(models, start, goal, body_goals, bc, cfgs):  # Eq. 4 during 
     n = len(start["deter"])
     goals = torch.cat([goal.detach().expand(n // 2, -1), body_goals[torch.randint(len(body_goals), (n - n // 2,))]])
     a_loss, c_loss, metrics = policy.policy_losses(models["world_model"], models["dist_net"], models["actor"], models["critic"],
-                                                   models["slow_critic"], models["return_norm"], start, goals, ac, models["goal_vae"])
+                                                   models["slow_critic"], models["return_norm"], start, goals, ac, models["goal_vae"], other_reading=False)
     if ac.bc:
         a_loss = a_loss + ac.bc * policy.bc_loss(models["actor"], bc["feat"], bc["goal"], bc["action"], bc["final"], ac.bc_final)[0]
     return a_loss, c_loss, metrics

@@ -297,10 +297,11 @@ def critic_loss(critic, feat, goal, returns):  # Eq. 4: V_eta trained with TD(la
     return loss, {"critic_loss": loss.item(), "value": value.mean().item()}
 
 
-def policy_losses(world_model, dist_net, actor, critic, slow_critic, return_norm, start, goal, cfg, vae=None):  # Eq. 4
+def policy_losses(world_model, dist_net, actor, critic, slow_critic, return_norm, start, goal, cfg, vae=None, other_reading=True):  # Eq. 4
     """One update of L_MG (module docstring): start dict of (N, .), goal (N, F) -> actor loss, critic loss, metrics.
-    vae: the goal VAE, read by cfg.reward 'feature'. Call ema_update(slow_critic, critic, cfg.slow_critic_rate) after
-    the critic's optimiser step."""
+    vae: the goal VAE, read by cfg.reward 'feature'. other_reading: also log the reward not in use (with vae); train.py
+    asks for it only on the updates it logs (it cost a third of the update). Call ema_update(slow_critic, critic,
+    cfg.slow_critic_rate) after the critic's optimiser step."""
     if cfg.reward not in REWARDS or (cfg.reward == "feature" and vae is None):
         raise ValueError(f"--ac-reward {cfg.reward!r}: pass 'distance' (Sec. 4) or 'feature' (with the goal VAE)")
     with freeze(world_model, dist_net, slow_critic, *([vae] if vae is not None else [])):
@@ -309,7 +310,7 @@ def policy_losses(world_model, dist_net, actor, critic, slow_critic, return_norm
         reward = rewards[cfg.reward]()  # (N, H)
         with torch.no_grad():  # both readings of the same imagined steps are logged, whichever one is the reward
             readings = {"reward_" + cfg.reward: reward.mean().item()}
-            if vae is not None:
+            if vae is not None and other_reading:
                 other = "feature" if cfg.reward == "distance" else "distance"
                 readings["reward_" + other] = rewards[other]().mean().item()
         value = slow_critic(feat, goal)  # (N, H + 1): differentiable in feat, so -G reaches the actions

@@ -341,7 +341,9 @@ def pretrain(cfgs, run_dir, resume):
         if step >= tc.policy_start:  # Eq. 4
             start, index = policy.sample_starts(post, ac.starts)
             goals = policy.sample_goals(post_feat, goal_feat, index, batch["is_first"], ac.goal_mix, ac.goal_near)
-            a_loss, c_loss, m = policy.policy_losses(wm, dist_net, models["actor"], models["critic"], models["slow_critic"], models["return_norm"], start, goals, ac, vae)
+            logged = (step + 1) % tc.log_every == 0 or step + 1 == tc.steps  # the update whose metrics the log row keeps
+            a_loss, c_loss, m = policy.policy_losses(wm, dist_net, models["actor"], models["critic"], models["slow_critic"], models["return_norm"],
+                                                     start, goals, ac, vae, other_reading=logged)
             if ac.bc:
                 with torch.no_grad():
                     final_goal = vae.goal(batch["p_last"])  # (B, F)
