@@ -132,9 +132,9 @@ def append_jsonl(path, row):
 
 def fast_matmul():
     """Routes fp32 matmuls (linear layers, the GRU cell, their backward) through oneDNN instead of MKL's sgemm, where
-    that still computes in fp32; returns whether it did. On AMD EPYC cores MKL takes a slow path, and oneDNN was 1.7-2.9x
-    faster per matmul at our layer sizes (relative error vs float64 1e-6, as MKL's; measured in bench.py --only phase1's
-    session, docs/experiments.md, Speed). PyTorch's switch for this is the mkldnn fp32_precision 'bf16': on a CPU with
+    that still computes in fp32; returns whether it did. On AMD EPYC cores MKL takes a slow path: the actor-critic update
+    ran 1.38x faster through oneDNN, relative error vs float64 ~1e-6 as MKL's (`python bench.py --only components`,
+    docs/experiments.md, Speed). PyTorch's switch for this is the mkldnn fp32_precision 'bf16': on a CPU with
     native bf16 matmul (AMX) oneDNN really rounds the inputs to bf16 (error ~1e-3), so a probe matmul and its backward
     are checked against float64 here and the switch is undone when their error is above fp32's."""
     matmul = torch.backends.mkldnn.matmul

@@ -125,13 +125,13 @@ def test_task_episodes_flag_grows_d_body_and_keeps_what_exists(data, tmp_path):
     assert json.load(open(os.path.join(folder, collect.COMPLETE)))["task_episodes"] == 2
 
 
-def test_task_episodes_replay_the_later_half_of_each_learning_history(tmp_path):
-    cfg = collect.CollectConfig(explore_episodes=0, task_episodes=40)
+def test_task_episodes_replay_the_chosen_part_of_each_learning_history(tmp_path):
+    cfg = collect.CollectConfig(explore_episodes=0, task_episodes=40, history_from=0.5)
     steps = {task: experts.history_steps("stickman", task) for task in collect.BODY_TASKS}
     chosen = {}
     for _, job in collect.episode_jobs("stickman", cfg, str(tmp_path)):
         chosen.setdefault(job["task"], set()).add(job["snapshot"])
     for task, history in steps.items():  # e.g. stand 50k..300k: only 150k..300k, each of them drawn
         assert chosen[task] == {s for s in history if s >= history[-1] / 2}
-    whole = collect.episode_jobs("stickman", collect.CollectConfig(explore_episodes=0, task_episodes=40, history_from=0.0), str(tmp_path))
+    whole = collect.episode_jobs("stickman", collect.CollectConfig(explore_episodes=0, task_episodes=40), str(tmp_path))  # the default
     assert {job["snapshot"] for _, job in whole if job["task"] == "stand"} == set(steps["stand"])
