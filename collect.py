@@ -23,6 +23,7 @@ Episode keys, index t = 0..L (Dreamer alignment, see world_model.py):
 Features are a second pass over stored pixels (`--features`), so a new encoder needs no re-simulation.
 """
 import argparse
+import contextlib
 import json
 import multiprocessing
 import os
@@ -109,6 +110,19 @@ def demo_jobs(cfg, data, demos=None):
     return out
 
 
+@contextlib.contextmanager
+def default_matmul():
+    """fp32 matmuls on PyTorch's default route inside the block, whatever the process set before: an episode must not
+    depend on which process simulates it. train.py and imitate.py route them through oneDNN (rundir.fast_matmul),
+    whose sums differ from MKL's in the last bit, and 500 steps of a falling body grow that into another episode."""
+    matmul = torch.backends.mkldnn.matmul
+    before, matmul.fp32_precision = matmul.fp32_precision, "none"
+    try:
+        yield
+    finally:
+        matmul.fp32_precision = before
+
+
 def simulate(job):
     """Run one episode; returns the keys of every view's file (without features)."""
     import experts
@@ -131,7 +145,7 @@ def simulate(job):
                 held, hold = rng.uniform(-1, 1, env.action_dim), int(rng.integers(1, 11))
             action, hold = held, hold - 1
         else:
-            with torch.no_grad():
+            with torch.no_grad(), default_matmul():
                 mean = actor(torch.as_tensor(obs)[None, None], deterministic=True)[0][0, 0].double().numpy()
             action = np.clip(mean + job["noise"] * rng.standard_normal(env.action_dim), -1, 1)
         obs, reward, _, _, _ = env.step(action)

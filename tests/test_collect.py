@@ -3,6 +3,7 @@ import os
 
 import numpy as np
 import pytest
+import torch
 
 import collect
 import experts
@@ -45,6 +46,22 @@ def test_episodes_are_reproducible(data, tmp_path):
         a = collect.load_episode(os.path.join(data, "walker", name))
         b = collect.load_episode(os.path.join(tmp_path, "walker", name))
         assert np.array_equal(a["state"], b["state"]) and np.array_equal(a["p"], b["p"])
+
+
+def test_episodes_do_not_depend_on_the_callers_matmul_route():
+    """A process that routed fp32 matmuls through oneDNN (train.py, imitate.py: rundir.fast_matmul) simulates the same
+    expert episode as a fresh one, and keeps its route."""
+    job = dict(kind="run", body="walker", task="run", index=0, snapshot=None, steps=SMOKE.episode_steps, noise=0.3,
+               seed=[0, 1, 2], views=("side",))
+    plain = collect.simulate(job)[0]
+    matmul = torch.backends.mkldnn.matmul
+    try:
+        matmul.fp32_precision = "bf16"
+        routed = collect.simulate(job)[0]
+        assert matmul.fp32_precision == "bf16"
+    finally:
+        matmul.fp32_precision = "none"
+    assert np.array_equal(plain["state"], routed["state"]) and np.array_equal(plain["action"], routed["action"])
 
 
 def test_demo_return_is_sum_of_rewards_and_views_share_motion(tmp_path):
