@@ -315,6 +315,22 @@ def confusion(features, agent, setting, kind):
     return counts
 
 
+def view_gap(features):
+    """{body: (same episode, side vs diagonal camera; two episodes of one task, side camera)}, each the cosine of
+    their features row by row as (mean over rows, last row), averaged over tasks and demos. D_demo films each
+    episode from both cameras (collect.collect_demos), so the first pair differs in the camera only and the second,
+    the scale to read it by, in the episode only."""
+    def cosines(a, b):
+        cos = (a * b).sum(-1) / np.linalg.norm(a, axis=-1) / np.linalg.norm(b, axis=-1)
+        return cos.mean(), cos[-1]
+    gap = {}
+    for body in BODIES:
+        views = [cosines(s, d) for task in TASKS for s, d in zip(features[body, task, "side"], features[body, task, "diagonal"])]
+        episodes = [cosines(a, b) for task in TASKS for a, b in zip(features[body, task, "side"], features[body, task, "side"][1:])]
+        gap[body] = tuple(tuple(np.mean(pairs, 0)) for pairs in (views, episodes))
+    return gap
+
+
 def evaluate(data="data", encoder=None):
     """Markdown report of nearest-centroid task accuracy on D_demo; returns {(agent, kind, setting): accuracy %}."""
     features, name = load_demo_features(data, encoder)
@@ -334,6 +350,10 @@ def evaluate(data="data", encoder=None):
             for setting in SETTINGS:
                 for task, row in zip(TASKS, counts[agent, kind, setting]):
                     print(f"| {setting} | {task} | " + " | ".join(str(c) for c in row) + " |")
+    print("\n## How much the camera moves the features: cosine of p_t, mean over t / last t\n")
+    print("| body | one episode, side vs diagonal | two episodes of one task, side |\n|---|---|---|")
+    for body, pairs in view_gap(features).items():
+        print(f"| {body} | " + " | ".join(f"{mean:.3f} / {last:.3f}" for mean, last in pairs) + " |")
     return accuracy
 
 

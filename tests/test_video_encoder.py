@@ -220,3 +220,15 @@ def test_eval_missing_data_is_one_line(tmp_path, monkeypatch):
     monkeypatch.setattr("sys.argv", ["video_encoder.py", "--eval", "--data", str(tmp_path)])
     with pytest.raises(SystemExit, match=r"^error: no demos in .*walker_stand_side: make D_demo with `python collect.py --demos`$"):
         ve.main()
+
+
+def test_view_gap_by_hand():
+    """A camera that changes nothing reads 1 / 1; features that turn at the last row read it there; the second
+    pair compares consecutive side demos of each task."""
+    side = [np.array([[1.0, 0.0], [1.0, 0.0]]), np.array([[0.0, 1.0], [0.0, 1.0]])]
+    turned = [np.array([[1.0, 0.0], [0.0, 1.0]]), np.array([[0.0, 1.0], [-1.0, 0.0]])]
+    features = {(b, t, v): [p.copy() for p in (side if v == "side" or b == "walker" else turned)]
+                for b in ve.BODIES for t in ve.TASKS for v in ve.VIEWS}
+    gap = ve.view_gap(features)
+    assert gap["walker"] == ((1.0, 1.0), (0.0, 0.0))
+    assert gap["stickman"] == ((0.5, 0.0), (0.0, 0.0))
