@@ -51,7 +51,7 @@ class AIMENoBConfig:
     preset: str = "cpu"  # smoke | cpu: the overrides in PRESETS, and ot_reward.py's solver preset of the same name
     env_steps: int = 5000  # interaction budget per seed in agent steps: 10 episodes (ours, cpu time; AIME-NoB interacts far longer)
     episode_steps: int = envs.EPISODE_STEPS  # agent steps per collected episode (a whole episode)
-    updates: int = 50  # world-model and actor-critic updates after each episode (ours: a cpu seed in 9.4 min on 2 busy cores, measured)
+    updates: int = 50  # world-model and actor-critic updates after each episode (ours: a cpu seed in 151-197 s with two processes on 2 cores, rows' time)
     starts: int = 128  # imagination start states per update, posterior states of the batch (as genrl.py)
     body_ratio: float = 0.5  # share of D_body segments in each world-model batch (AIME-NoB: embodiment data at ratio 0.5)
     reward_sum: float = 10.0  # the first episode's OT labels are scaled to sum to -reward_sum (ROT: auto_rew_scale_factor 10)
