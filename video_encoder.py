@@ -47,7 +47,8 @@ TorchScript plug-in contract (what the file must hold; `torch.jit.save(torch.jit
   Outputs are L2-normalised here, so the module need not do it.
 
 Run `python video_encoder.py --eval` to measure how well the features tell the four tasks apart on
-D_demo (nearest task centroid, the four settings), `--bench` for the frames/s of the default encoder.
+D_demo (nearest task centroid, the four settings) and how much the camera moves them, `--bench` for the
+frames/s of the default encoder.
 """
 import argparse
 import glob
