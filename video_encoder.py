@@ -321,8 +321,8 @@ def view_gap(features):
     their features row by row as (mean over rows, last row), averaged over tasks and demos. D_demo films each
     episode from both cameras (collect.collect_demos), so the first pair differs in the camera only and the second,
     the scale to read it by, in the episode only."""
-    def cosines(a, b):
-        cos = (a * b).sum(-1) / np.linalg.norm(a, axis=-1) / np.linalg.norm(b, axis=-1)
+    def cosines(a, b):  # p's rows are unit vectors (module docstring)
+        cos = (a * b).sum(-1)
         return cos.mean(), cos[-1]
     gap = {}
     for body in BODIES:
