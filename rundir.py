@@ -9,6 +9,7 @@ trim_jsonl    on resume, metrics.jsonl keeps only the rows up to the checkpoint'
 read_jsonl    the rows of a .jsonl log; a last line cut short by a kill is dropped, any other bad line is an error
 append_jsonl  one row, on a line of its own after such a cut line
 fast_matmul   fp32 matmuls through oneDNN where that is faster and still fp32 (checked on this CPU)
+export_agent  a trained run as a shipped agent, agents/<body>/checkpoint.pt: weights only (train.py --export)
 """
 import contextlib
 import dataclasses
@@ -19,6 +20,7 @@ import os
 
 import torch
 
+import collect
 from collect import atomic_write
 
 # Ranges of the numeric flags that are not counts or sizes (those are >= 1): (low, high), None = no bound. Learning
@@ -152,3 +154,34 @@ def fast_matmul():
     if error > 1e-5:  # fp32 gives ~1e-6 here, bf16 ~1e-3
         matmul.fp32_precision = "none"
     return error <= 1e-5
+
+
+AGENTS = "agents"  # the shipped phase-1 agents: agents/<body>/checkpoint.pt, weights only (export_agent)
+
+
+def export_agent(run_dir, out_dir):
+    """A trained run as a shipped agent: its models' weights (float16: half the size; they are cast back to float32 on
+    loading, and the benchmark of the exported agent is measured by loading it, `train.py --evaluate --run-dir`), its
+    config and shapes; no optimiser state or RNG. Loadable by train.load_run like any run."""
+    ckpt = collect.load_checkpoint(os.path.join(run_dir, "checkpoint.pt"))
+    half = lambda t: t.half() if t.is_floating_point() else t
+    agent = {k: ckpt[k] for k in ("config", "step", "encoder", "obs_shape", "action_dim", "p_dim")}
+    # D_body is not shipped: the agent reads (and collects) demos in its preset's default data folder, wherever it was
+    # trained; that folder is kept as trained_data
+    train_cfg = agent["config"]["train"]
+    agent["config"] = {**agent["config"], "train": {**train_cfg, "data": collect.DATA[train_cfg["preset"]]}}
+    agent["trained_data"] = train_cfg["data"]
+    agent["models"] = {name: {k: half(t) for k, t in sd.items()} for name, sd in ckpt["models"].items()}
+    os.makedirs(out_dir, exist_ok=True)
+    # what phase 2 and the benchmark wrote for the agent replaced here would mix with the new agent's (tables.py matches
+    # rows by demo and settings, not by weights): moved, never deleted, to <out_dir>/previous_<n>/
+    made = [f for f in ("results.jsonl", "tables.md", "goal_reaching.json", "imitate") if os.path.exists(os.path.join(out_dir, f))]
+    if made:
+        old = os.path.join(out_dir, f"previous_{sum(f.startswith('previous_') for f in os.listdir(out_dir))}")
+        os.makedirs(old)
+        for f in made:
+            os.replace(os.path.join(out_dir, f), os.path.join(old, f))
+        print(f"moved the replaced agent's {', '.join(made)} to {old}")
+    path = os.path.join(out_dir, "checkpoint.pt")
+    atomic_write(path, lambda f: torch.save(agent, f))
+    return path

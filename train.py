@@ -138,42 +138,11 @@ def load_run(run_dir, device="cpu"):
     return cfgs, models, ckpt
 
 
-AGENTS = "agents"  # the shipped phase-1 agents: agents/<body>/checkpoint.pt, weights only (export_agent)
-
-
-def export_agent(run_dir, out_dir):
-    """A trained run as a shipped agent: its models' weights (float16: half the size; they are cast back to float32 on
-    loading, and the benchmark of the exported agent is measured by loading it, `train.py --evaluate --run-dir`), its
-    config and shapes; no optimiser state or RNG. Loadable by load_run like any run."""
-    ckpt = collect.load_checkpoint(os.path.join(run_dir, "checkpoint.pt"))
-    half = lambda t: t.half() if t.is_floating_point() else t
-    agent = {k: ckpt[k] for k in ("config", "step", "encoder", "obs_shape", "action_dim", "p_dim")}
-    # D_body is not shipped: the agent reads (and collects) demos in its preset's default data folder, wherever it was
-    # trained; that folder is kept as trained_data
-    train_cfg = agent["config"]["train"]
-    agent["config"] = {**agent["config"], "train": {**train_cfg, "data": collect.DATA[train_cfg["preset"]]}}
-    agent["trained_data"] = train_cfg["data"]
-    agent["models"] = {name: {k: half(t) for k, t in sd.items()} for name, sd in ckpt["models"].items()}
-    os.makedirs(out_dir, exist_ok=True)
-    # what phase 2 and the benchmark wrote for the agent replaced here would mix with the new agent's (tables.py matches
-    # rows by demo and settings, not by weights): moved, never deleted, to <out_dir>/previous_<n>/
-    made = [f for f in ("results.jsonl", "tables.md", "goal_reaching.json", "imitate") if os.path.exists(os.path.join(out_dir, f))]
-    if made:
-        old = os.path.join(out_dir, f"previous_{sum(f.startswith('previous_') for f in os.listdir(out_dir))}")
-        os.makedirs(old)
-        for f in made:
-            os.replace(os.path.join(out_dir, f), os.path.join(old, f))
-        print(f"moved the replaced agent's {', '.join(made)} to {old}")
-    path = os.path.join(out_dir, "checkpoint.pt")
-    collect.atomic_write(path, lambda f: torch.save(agent, f))
-    return path
-
-
 def resolve_run(env, preset):
     """The run phase 2 uses when none is named: the user's own (runs/<env>_<obs>_<preset>_s0) when it exists, else the
     shipped agent of that body (cpu preset only); says which."""
     own = default_run_dir(env, preset)
-    shipped = os.path.join(AGENTS, env)
+    shipped = os.path.join(rundir.AGENTS, env)
     if not os.path.exists(os.path.join(own, "checkpoint.pt")) and preset == "cpu" and os.path.exists(os.path.join(shipped, "checkpoint.pt")):
         print(f"using the shipped {env} agent {shipped} (no run of your own at {own}; `python train.py --env {env}` makes one)")
         return shipped
@@ -435,7 +404,7 @@ def main():
     tc = cfgs["train"]
     run_dir = args.run_dir or default_run_dir(tc.env, tc.preset, tc.seed, cfgs["wm"].obs)
     if args.export:
-        print("wrote", export_agent(run_dir, args.export))
+        print("wrote", rundir.export_agent(run_dir, args.export))
     elif args.evaluate:
         device = "cuda" if torch.cuda.is_available() else "cpu"
         run_cfgs, models, _ = load_run(run_dir, device)

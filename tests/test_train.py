@@ -10,6 +10,7 @@ import torch
 
 import collect
 import evaluate
+import rundir
 import train
 from conftest import train_args
 
@@ -128,7 +129,7 @@ def test_command_line_runs_and_resumes(smoke_data, tmp_path):
 
 
 def test_exported_agent_loads_weights_only_and_acts_like_its_run(smoke_run, tmp_path, monkeypatch, capsys):
-    path = train.export_agent(smoke_run, str(tmp_path / "agents" / "walker"))
+    path = rundir.export_agent(smoke_run, str(tmp_path / "agents" / "walker"))
     agent = torch.load(path, weights_only=True)
     assert "optims" not in agent and all(t.dtype == torch.float16 for sd in agent["models"].values() for t in sd.values() if t.is_floating_point())
     # D_body is not shipped: the agent reads demos from its preset's default folder; where it trained is kept
@@ -141,7 +142,7 @@ def test_exported_agent_loads_weights_only_and_acts_like_its_run(smoke_run, tmp_
     # exporting over an agent moves what was measured on the old one aside, so no table mixes the two
     with open(os.path.join(os.path.dirname(path), "results.jsonl"), "w") as f:
         f.write('{"method": "GIIL-ZS"}\n')
-    train.export_agent(smoke_run, os.path.dirname(path))
+    rundir.export_agent(smoke_run, os.path.dirname(path))
     assert not os.path.exists(os.path.join(os.path.dirname(path), "results.jsonl"))
     assert open(os.path.join(os.path.dirname(path), "previous_0", "results.jsonl")).read() == '{"method": "GIIL-ZS"}\n'
     # phase 2's default: the user's own run when there is one, else the shipped agent, saying which
