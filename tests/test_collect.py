@@ -1,4 +1,5 @@
 """collect.py: D_body / D_demo contents, the episode reader's errors, resume (smoke preset)."""
+import dataclasses
 import os
 
 import numpy as np
@@ -152,3 +153,12 @@ def test_task_episodes_replay_the_chosen_part_of_each_learning_history(tmp_path)
         assert chosen[task] == {s for s in history if s >= history[-1] / 2}
     whole = collect.episode_jobs("stickman", collect.CollectConfig(explore_episodes=0, task_episodes=40), str(tmp_path))  # the default
     assert {job["snapshot"] for _, job in whole if job["task"] == "stand"} == set(steps["stand"])
+
+
+def test_the_cpu_preset_collects_more_stickman_task_episodes():
+    """BODY_PRESETS: the cpu preset's stickman D_body has 160 episodes per task, the walker's the preset's 80; the other
+    fields and the demos' config are the preset's."""
+    cpu = collect.CollectConfig(**collect.PRESETS["cpu"])
+    assert collect.preset_config("cpu", "walker") == cpu == collect.preset_config("cpu")
+    assert collect.preset_config("cpu", "stickman") == dataclasses.replace(cpu, task_episodes=160)
+    assert collect.preset_config("smoke", "stickman") == SMOKE
