@@ -64,7 +64,7 @@ class CollectConfig:
 
 PRESETS = {
     "smoke": dict(explore_episodes=2, task_episodes=1, demo_episodes=2, episode_steps=20),
-    "cpu": dict(),  # the defaults: 320 episodes, ~8 min on 2 idle cores (200 took 5 min; docs/experiments.md)
+    "cpu": dict(),  # the defaults: 320 episodes (the stickman 560, BODY_PRESETS), ~8 min on 2 idle cores (200 took 5 min)
     "paper": dict(explore_episodes=2000, task_episodes=1000),
 }
 # A body's own overrides of a preset. The cpu preset's stickman collects 160 episodes per task (560 in all): its task
