@@ -85,7 +85,7 @@ def demo_folder(cfgs, demo, view):
     body, _, task = demo.rpartition("_")
     if body not in envs.BODIES or task not in envs.TASKS:
         raise ValueError(f"unknown demo {demo!r}: valid demos are {', '.join(b + '_' + t for b in envs.BODIES for t in envs.TASKS)}")
-    collect.collect_demos(collect.CollectConfig(**collect.PRESETS[tc.preset]), tc.data, os.cpu_count(), tc.encoder, [(body, task)])
+    collect.collect_demos(collect.preset_config(tc.preset), tc.data, os.cpu_count(), tc.encoder, [(body, task)])
     return os.path.join(tc.data, "demos", f"{demo}_{view}")
 
 
