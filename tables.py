@@ -95,7 +95,11 @@ def table(run_dir, ic, settings=SETTINGS, demos_per_cell=10, shard=(0, 1), metho
     rundir.check_flags(ic)
     baselines = baseline_configs(ic.preset, BASELINES)  # their finished cells are shown whichever methods run now
     cfgs = train.load_run(run_dir)[0]
-    agent, current = cfgs["train"].env, []
+    agent, shown = cfgs["train"].env, []
+    config = lambda m: baselines[m][2] if m in baselines else result_config(ic, m)
+    finished = lambda rows, demo, view, returns: [  # a cell's rows that count
+        r for r in rows if r["demo"] == demo and r["view"] == view and r.get("demo_returns") == returns
+        and (r["method"] in METHODS or r["method"] in baselines) and r.get("config") == config(r["method"])]
     for k, (task, where) in enumerate(cells(agent)):
         demo, view = demo_of(agent, task, where)
         run_now = where in settings and k % shard[1] == shard[0]  # a cell left out runs nothing; its finished rows still count
@@ -103,10 +107,7 @@ def table(run_dir, ic, settings=SETTINGS, demos_per_cell=10, shard=(0, 1), metho
         if not os.path.isdir(folder):
             continue
         returns = [round(e["return"], 3) for e in collect.load_folder(folder, ())]
-        config = lambda m: baselines[m][2] if m in baselines else result_config(ic, m)
-        cell = lambda: [r for r in load_results(run_dir) if r["demo"] == demo and r["view"] == view and r.get("demo_returns") == returns
-                        and (r["method"] in METHODS or r["method"] in baselines) and r.get("config") == config(r["method"])]
-        count = lambda m: len({r["seed"] for r in cell() if r["method"] == m})
+        count = lambda m: len({r["seed"] for r in finished(load_results(run_dir), demo, view, returns) if r["method"] == m})
         zs, ft = count("GIIL-ZS") < demos_per_cell, min(count("GIIL-FT"), count("GIIL-ZS (demo 0)")) < ic.seeds
         if (zs or ft) and run_now and "giil" in methods:
             imitate.imitate(run_dir, demo, view, ft, ic, zero_shot=zs)
@@ -114,8 +115,9 @@ def table(run_dir, ic, settings=SETTINGS, demos_per_cell=10, shard=(0, 1), metho
             module, cfg, _ = baselines[method]
             if count(method) < cfg.seeds and run_now and name in methods:
                 module.run_cell(run_dir, demo, view, cfg)
-        current += cell()
-    text = markdown_tables(agent, current)
+        shown.append((demo, view, returns))
+    rows = load_results(run_dir)  # read once all cells ran: the rows other shards appended meanwhile count too
+    text = markdown_tables(agent, [r for cell in shown for r in finished(rows, *cell)])
     path = os.path.join(run_dir, "tables.md")
     collect.atomic_write(path, lambda f: f.write(text.encode()))
     print(text)
