@@ -46,10 +46,11 @@ COMPLETE = "collection.json"  # written into data/<body>/ once all of D_body is 
 @dataclass
 class CollectConfig:
     explore_episodes: int = 80  # D_body exploration episodes (paper ~2000)
-    # D_body episodes per task in BODY_TASKS (paper 1000). 80 : 240 = 1 : 3 (the paper's 2 : 3 is 80 : 120, our first
-    # default): 80 per task raised goal reaching over 3 training seeds, walker 51.1 -> 59.6, stickman 12.7 -> 23.7
-    # (docs/experiments.md, Phase 1); the stickman's poorer data gained most
-    task_episodes: int = 80
+    # D_body episodes per task in BODY_TASKS (paper 1000). 80 : 480 = 1 : 6 (the paper's 2 : 3 is 80 : 120, our first
+    # default): each doubling raised goal reaching, paired over 3 training seeds (docs/experiments.md, Phase 1):
+    # 40 -> 80 per task walker +8.5 +- 5.1, stickman +11.0 +- 1.6; 80 -> 160 stickman +7.2 +- 1.8 (20.1 -> 27.3),
+    # walker +8.0 +- 1.7 (59.6 -> 67.6, against the 80-per-task runs of earlier code)
+    task_episodes: int = 160
     demo_episodes: int = 10  # per (body, task, view): paper Sec. 5
     episode_steps: int = envs.EPISODE_STEPS  # agent steps per episode
     action_noise: float = 0.3  # std of the Gaussian noise on snapshot actions in D_body
@@ -64,19 +65,14 @@ class CollectConfig:
 
 PRESETS = {
     "smoke": dict(explore_episodes=2, task_episodes=1, demo_episodes=2, episode_steps=20),
-    "cpu": dict(),  # the defaults: 320 episodes (the stickman 560, BODY_PRESETS), ~8 min on 2 idle cores (200 took 5 min)
+    "cpu": dict(),  # the defaults: 560 episodes, ~20 min on 2 idle cores (the walker's: 20 min 21 s)
     "paper": dict(explore_episodes=2000, task_episodes=1000),
 }
-# A body's own overrides of a preset. The cpu preset's stickman collects 160 episodes per task (560 in all): its task
-# episodes are poorer than the walker's (stand / walk / run 57 / 45 / 30 against 93 / 75 / 42, normalised) and each
-# doubling raised its goal reaching, paired over 3 training seeds: 40 -> 80 per task +11.0 +- 1.6, 80 -> 160 +7.2 +- 1.8
-# (20.1 -> 27.3; docs/experiments.md, Phase 1). The walker at 160 was not measured.
-BODY_PRESETS = {("cpu", "stickman"): dict(task_episodes=160)}
 
 
-def preset_config(preset, body=None):
-    """The CollectConfig of a preset, with the body's overrides (BODY_PRESETS) for its D_body; body None for D_demo."""
-    return CollectConfig(**{**PRESETS[preset], **BODY_PRESETS.get((preset, body), {})})
+def preset_config(preset):
+    """The CollectConfig of a preset, for D_body and D_demo alike."""
+    return CollectConfig(**PRESETS[preset])
 
 
 # Where each preset's datasets go by default (--data): the smoke preset's 20-step episodes never share a folder with the
@@ -416,7 +412,7 @@ def main():
     parser.add_argument("--history-from", type=float, default=None, help="task episodes replay the snapshots from this fraction of "
                         "each expert's learning history on (default: the preset's)")
     args = parser.parse_args()
-    cfg, args.data = preset_config(args.preset, args.env), args.data or DATA[args.preset]
+    cfg, args.data = preset_config(args.preset), args.data or DATA[args.preset]
     if args.task_episodes is not None:
         if args.task_episodes < 1:
             parser.error(f"--task-episodes {args.task_episodes}: pass at least 1")

@@ -176,7 +176,7 @@ def prepare_data(cfgs):
     """D_body of the run (collected first where incomplete) and the body's own demos (the benchmark's goals):
     -> encoder, training Segments, held-out episodes, (obs_shape, action_dim, p_dim)."""
     tc, wc = cfgs["train"], cfgs["wm"]
-    folder, want = os.path.join(tc.data, tc.env), collect.preset_config(tc.preset, tc.env)
+    folder, want = os.path.join(tc.data, tc.env), collect.preset_config(tc.preset)
     complete = os.path.join(folder, collect.COMPLETE)
     has = json.load(open(complete)) if os.path.exists(complete) else {}  # missing, or a collection killed half-way
     counts = ("explore_episodes", "task_episodes")

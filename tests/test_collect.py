@@ -155,10 +155,14 @@ def test_task_episodes_replay_the_chosen_part_of_each_learning_history(tmp_path)
     assert {job["snapshot"] for _, job in whole if job["task"] == "stand"} == set(steps["stand"])
 
 
-def test_the_cpu_preset_collects_more_stickman_task_episodes():
-    """BODY_PRESETS: the cpu preset's stickman D_body has 160 episodes per task, the walker's the preset's 80; the other
-    fields and the demos' config are the preset's."""
-    cpu = collect.CollectConfig(**collect.PRESETS["cpu"])
-    assert collect.preset_config("cpu", "walker") == cpu == collect.preset_config("cpu")
-    assert collect.preset_config("cpu", "stickman") == dataclasses.replace(cpu, task_episodes=160)
-    assert collect.preset_config("smoke", "stickman") == SMOKE
+def test_the_cpu_preset_collects_160_task_episodes_per_task_for_both_bodies(tmp_path):
+    """The cpu preset's D_body: 80 exploration episodes and 160 per task in BODY_TASKS (560), each with its own seed;
+    D_demo's config is the same preset's."""
+    cpu = collect.preset_config("cpu")
+    assert cpu == collect.CollectConfig() and cpu.demo_episodes == 10
+    for body in ("walker", "stickman"):
+        jobs = [job for _, job in collect.episode_jobs(body, cpu, str(tmp_path))]
+        assert len(jobs) == 560 and [j["kind"] for j in jobs].count("explore") == 80
+        assert all([j["kind"] for j in jobs].count(task) == 160 for task in collect.BODY_TASKS)
+        assert len({tuple(j["seed"]) for j in jobs}) == 560
+    assert collect.preset_config("smoke") == SMOKE
