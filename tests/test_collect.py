@@ -1,5 +1,4 @@
 """collect.py: D_body / D_demo contents, the episode reader's errors, resume (smoke preset)."""
-import dataclasses
 import os
 
 import numpy as np
