@@ -131,14 +131,14 @@ def test_command_line_runs_and_resumes(smoke_data, tmp_path):
 def test_exported_agent_loads_weights_only_and_acts_like_its_run(smoke_run, tmp_path, monkeypatch, capsys):
     path = rundir.export_agent(smoke_run, str(tmp_path / "agents" / "walker"))
     agent = torch.load(path, weights_only=True)
-    assert "optims" not in agent and all(t.dtype == torch.float16 for sd in agent["models"].values() for t in sd.values() if t.is_floating_point())
+    assert "optims" not in agent and "rng" not in agent
     # D_body is not shipped: the agent reads demos from its preset's default folder; where it trained is kept
     assert agent["config"]["train"]["data"] == collect.DATA["smoke"] and agent["trained_data"] == train.load_run(smoke_run)[0]["train"].data
     _, run_models, _ = train.load_run(smoke_run)
     _, agent_models, _ = train.load_run(os.path.dirname(path))
     for name, model in run_models.items():
         for (k, a), b in zip(model.state_dict().items(), agent_models[name].state_dict().values()):
-            assert b.dtype == a.dtype and torch.allclose(a, b, rtol=1e-3, atol=1e-4), (name, k)
+            assert b.dtype == a.dtype and torch.equal(a, b), (name, k)
     # exporting over an agent moves what was measured on the old one aside, so no table mixes the two
     with open(os.path.join(os.path.dirname(path), "results.jsonl"), "w") as f:
         f.write('{"method": "GIIL-ZS"}\n')
