@@ -52,7 +52,7 @@ def bench_collect(episodes=2):
         print(f"collect        {name} episode ({job['steps']} steps) {per:5.1f} s | {3600 / per:5.0f} episodes/h per core")
 
 
-def component_updates(preset="cpu", obs_dim=24, action_dim=6, p_dim=64):
+def component_updates(preset="cpu", obs_dim=24, action_dim=6, p_dim=64, device="cpu"):
     """One update of each phase-1 component at a preset's sizes, on a random batch of collect.py's shapes, as
     {name: zero-argument function}: forward, backward, gradient clipping and an Adam step, as train.py does them."""
     import torch
@@ -72,7 +72,9 @@ def component_updates(preset="cpu", obs_dim=24, action_dim=6, p_dim=64):
     actor = policy.Actor(cfg["ac"], wm.feat_dim, wm.feat_dim, action_dim)
     critic, slow_critic = policy.make_critics(cfg["ac"], wm.feat_dim, wm.feat_dim)
     return_norm = policy.ReturnNorm(cfg["ac"].return_norm_decay)
-    batch = W.random_batch(cfg["wm"].obs, obs_shape, action_dim, cfg["wm"].batch, cfg["wm"].seq_len, p_dim)
+    for m in (wm, vae, dist_net, actor, critic, slow_critic, return_norm):
+        m.to(device)
+    batch = {k: v.to(device) for k, v in W.random_batch(cfg["wm"].obs, obs_shape, action_dim, cfg["wm"].batch, cfg["wm"].seq_len, p_dim).items()}
     with torch.no_grad():
         post, _ = wm.observe(batch[cfg["wm"].obs], batch["action"], batch["is_first"])
         post_feat, goal_feat = wm.feat(post), vae.goal(batch["p"])
@@ -126,6 +128,27 @@ def bench_components():
         print(line)
     if not fast:
         print("phase 1        (oneDNN fp32 matmuls not used: on this CPU they would not compute in fp32, rundir.fast_matmul)")
+
+
+def bench_gpu():
+    """Each phase-1 component's update on the GPU, at the cpu preset's sizes and at the paper preset's (pixels)."""
+    import torch
+
+    if not torch.cuda.is_available():
+        raise SystemExit("bench.py --only gpu needs a CUDA GPU (torch.cuda.is_available() is False)")
+
+    def on_gpu(update):
+        def run():
+            update()
+            torch.cuda.synchronize()
+        return run
+
+    for preset in ("cpu", "paper"):
+        updates = component_updates(preset, device="cuda")
+        times = {name: timed(on_gpu(update), repeat=10) for name, update in updates.items()}
+        for name, t in times.items():
+            print(f"phase 1 GPU    {preset} preset, {name}: {1000 * t:.0f} ms")
+        print(f"phase 1 GPU    {preset} preset, one update of all four: {1000 * sum(times.values()):.0f} ms ({torch.cuda.get_device_name()})")
 
 
 def train_updates_per_s(tree, data, threads, logs=4, every=10):
@@ -193,11 +216,11 @@ def bench_ot():
         print(f"OT reward      B={B} trajectories x T=15 against K=10 demos of M={M} frames (D=512): {1000 * r['whole_demo_s']:.0f} ms (windowed: {1000 * r['window_s']:.0f} ms)")
 
 
-SECTIONS = {"render": bench_render, "features": bench_features, "collect": bench_collect, "components": bench_components, "phase1": bench_phase1, "ot": bench_ot}
+SECTIONS = {"render": bench_render, "features": bench_features, "collect": bench_collect, "components": bench_components, "phase1": bench_phase1, "ot": bench_ot, "gpu": bench_gpu}
 
 if __name__ == "__main__":
     parser = argparse.ArgumentParser(description=__doc__)
-    parser.add_argument("--only", nargs="+", choices=SECTIONS, default=list(SECTIONS))
+    parser.add_argument("--only", nargs="+", choices=SECTIONS, default=[s for s in SECTIONS if s != "gpu"], help="default: all but gpu")
     parser.add_argument("--against", metavar="REV", help="phase1: also time this git commit's train.py, in the same run (e.g. 4ca0c2f)")
     args = parser.parse_args()
     for name in args.only:

@@ -227,7 +227,7 @@ def restore(ckpt_path, config, models, optims, encoder, device):
     models["actor"].load_state_dict(ckpt.get("actor_unpolished", ckpt["models"]["actor"]))  # training goes on from the unpolished actor
     for name, opt in optims.items():
         opt.load_state_dict(ckpt["optims"][name])
-    torch.set_rng_state(ckpt["torch_rng"])
+    torch.set_rng_state(ckpt["torch_rng"].cpu())  # load_checkpoint maps every tensor to `device`; the CPU generator needs a CPU tensor
     print(f"resumed {ckpt_path} at update {ckpt['step']}")
     return ckpt["step"], collect.generator(ckpt["rng"])
 
