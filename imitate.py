@@ -291,7 +291,7 @@ def main():
     parser.add_argument("--run", help="the phase-1 run (train.py) whose agent imitates (default: the --env agent's run of this --preset, "
                         "runs/<env>_<obs>_<preset>_s0, or else the shipped agents/<env>)")
     parser.add_argument("--env", choices=envs.BODIES, help="the agent's body, to pick the default --run (default walker)")
-    parser.add_argument("--finetune", action="store_true", help="also GIIL-FT: finetune the goal (Eq. 5), 3 seeds")
+    parser.add_argument("--finetune", action="store_true", help="also GIIL-FT: finetune the goal (Eq. 5), --seeds seeds (default 5)")
     parser.add_argument("--table", action="store_true", help="all settings x tasks for this agent; keeps finished cells")
     parser.add_argument("--settings", default=",".join(envs.SETTINGS), help="with --table: the settings to run now, comma-separated")
     parser.add_argument("--shard", default="0/1", metavar="I/N", help="with --table: run only cells I, I + N, ... of the 16 (N processes, one table)")
