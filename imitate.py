@@ -266,11 +266,11 @@ def imitate(run_dir, demo, view, finetune, ic, zero_shot=True):
     if finetune:
         psi_star = {k: {n: t.clone() for n, t in m.state_dict().items()} for k, m in models.items()}  # clones: optimisers step in place
         for seed in range(ic.seeds):
+            for k, m in models.items():  # each seed's GIIL-ZS (demo 0) and GIIL-FT start from psi*
+                m.load_state_dict(psi_star[k])
             t0 = time.time()
             evaluate_goal("GIIL-ZS (demo 0)", seed, goals[0], demos[0]["pixels"])
             t0 = time.time()  # GIIL-FT's time: finetuning and its evaluation
-            for k, m in models.items():  # each seed starts from psi*
-                m.load_state_dict(psi_star[k])
             goal = finetune_goal(models, cfgs, ic, ot_cfg, torch.as_tensor(demos[0]["p"][-1], device=device), [d["p"] for d in demos], seed, device,
                                  ckpt.get("optims"))
             # how far finetuning moved g: beside the distance between the demos' zero-shot goals (docs/experiments.md)

@@ -122,18 +122,29 @@ def test_command_line(smoke_run, tmp_path):
 
 
 def test_every_finetuning_seed_starts_from_the_pretrained_policy(smoke_run, tmp_path, monkeypatch):
+    """With psi finetuned too, each seed's finetuning and its GIIL-ZS (demo 0) evaluation see psi*, not the policy
+    that the previous seed finetuned."""
     run = str(tmp_path / "run")
     shutil.copytree(smoke_run, run)
-    seen, original = [], imitate.finetune_goal
+    seen, evaluated, finetune, run_episodes = [], [], imitate.finetune_goal, imitate.evaluate.run_episodes
+    actor_sum = lambda models: sum(p.sum().item() for p in models["actor"].parameters())
 
     def recording(models, *args):
-        seen.append(sum(p.sum().item() for p in models["actor"].parameters()))
-        return original(models, *args)
+        seen.append(actor_sum(models))
+        return finetune(models, *args)
+
+    def recording_eval(env_list, models, *args):
+        evaluated.append(actor_sum(models))
+        return run_episodes(env_list, models, *args)
 
     monkeypatch.setattr(imitate, "finetune_goal", recording)
+    monkeypatch.setattr(imitate.evaluate, "run_episodes", recording_eval)
     imitate.imitate(run, "walker_run", "side", True, dataclasses.replace(SMOKE, finetune_policy=1), zero_shot=False)
-    pretrained = sum(p.sum().item() for p in train.load_run(run)[1]["actor"].parameters())
+    pretrained = actor_sum(train.load_run(run)[1])
     assert len(seen) == SMOKE.seeds and all(s == pytest.approx(pretrained, abs=1e-6) for s in seen)
+    zs0 = evaluated[0::2]  # GIIL-ZS (demo 0), GIIL-FT, GIIL-ZS (demo 0), ...
+    assert len(zs0) == SMOKE.seeds and all(s == pytest.approx(pretrained, abs=1e-6) for s in zs0)
+    assert evaluated[1] != pytest.approx(pretrained, abs=1e-6)  # GIIL-FT's evaluation: psi moved
 
 
 def test_critic_warmup_holds_the_goal(smoke_run):
