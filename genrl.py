@@ -53,8 +53,8 @@ METHOD = "GenRL"
 @dataclasses.dataclass
 class GenRLConfig:
     preset: str = "cpu"  # smoke | cpu: the overrides in PRESETS
-    steps: int = 1600  # actor-critic updates per seed: what fits the 5 min per seed and cell set for GenRL here, with two processes on 2 cores
-    # (chosen on same-body cells: walker SE-SV walk 2.2 +- 2.1 at 400 updates, 52.3 +- 8.4 at 2000; GenRL trains far longer)
+    steps: int = 1000  # actor-critic updates per seed: what fits the 5 min per seed and cell set for GenRL here (~3.7 updates/s with two
+    # processes on 2 cores); more updates help (same-body cells: walker SE-SV walk 2.2 +- 2.1 at 400, 52.3 +- 8.4 at 2000); GenRL trains far longer
     starts: int = 128  # imagination start states per update, D_body posterior states (ours: half phase 1's cpu 256, for time)
     target_len: int = 15  # L: target states, q(s | p) of the first demo's last L features (GenRL: as long as the imagination, H = 15 here)
     align_window: int = 8  # k: imagined steps matched to the target's start (GenRL: n_frames 8, the video model's window)
