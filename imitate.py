@@ -294,7 +294,7 @@ def main():
     parser.add_argument("--finetune", action="store_true", help="also GIIL-FT: finetune the goal (Eq. 5), --seeds seeds (default 5)")
     parser.add_argument("--table", action="store_true", help="all settings x tasks for this agent; keeps finished cells")
     parser.add_argument("--settings", default=",".join(envs.SETTINGS), help="with --table: the settings to run now, comma-separated")
-    parser.add_argument("--shard", default="0/1", metavar="I/N", help="with --table: run only cells I, I + N, ... of the 16 (N processes, one table)")
+    parser.add_argument("--shard", default="0/1", metavar="I/N", help="with --table: run only cells I, I + N, ... of those of --settings (N processes, one table)")
     parser.add_argument("--methods", default="giil", help="with --table: comma-separated, of giil (GIIL-ZS, GIIL-FT), genrl, aime-nob (the "
                         "baselines, genrl.py and aime_nob.py with their --preset); e.g. giil,genrl,aime-nob")
     for field in dataclasses.fields(ImitateConfig):

@@ -82,7 +82,7 @@ def table(run_dir, ic, settings=SETTINGS, demos_per_cell=10, shard=(0, 1), metho
     """Every setting x task for this agent, GIIL-ZS, GIIL-ZS (demo 0) and GIIL-FT ("giil" in `methods`) and the baselines
     named in `methods` (BASELINES' keys: genrl.py, aime_nob.py, each with its preset of ic.preset); runs only what is
     missing from results.jsonl, and shows every finished cell of all of them. `settings` limits which settings run now, shard (i, N) runs only the cells i, i + N, i + 2N, ... of
-    `cells` (N processes or machines share one table: rows are appended under a lock, one row per evaluation, and a
+    those (in `cells`' order; N processes or machines share one table: rows are appended under a lock, one row per evaluation, and a
     cell's rows are told apart by method and seed, so shards merge without loss or duplicates); the tables show every
     finished cell. A row counts only if it was made with the demos now on disk (their returns match) and with the
     settings asked for (result_config): regenerating D_demo or changing a setting makes the cells run again instead
@@ -100,9 +100,11 @@ def table(run_dir, ic, settings=SETTINGS, demos_per_cell=10, shard=(0, 1), metho
     finished = lambda rows, demo, view, returns: [  # a cell's rows that count
         r for r in rows if r["demo"] == demo and r["view"] == view and r.get("demo_returns") == returns
         and (r["method"] in METHODS or r["method"] in baselines) and r.get("config") == config(r["method"])]
-    for k, (task, where) in enumerate(cells(agent)):
+    # the shards split the cells of `settings`, so that none is left idle; a cell left out runs nothing, its finished rows still count
+    runs_here = [cell for cell in cells(agent) if cell[1] in settings][shard[0]::shard[1]]
+    for task, where in cells(agent):
         demo, view = demo_of(agent, task, where)
-        run_now = where in settings and k % shard[1] == shard[0]  # a cell left out runs nothing; its finished rows still count
+        run_now = (task, where) in runs_here
         folder = imitate.demo_folder(cfgs, demo, view) if run_now else os.path.join(cfgs["train"].data, "demos", f"{demo}_{view}")
         if not os.path.isdir(folder):
             continue

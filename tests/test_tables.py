@@ -61,6 +61,20 @@ def test_shards_together_make_the_whole_table_once(smoke_run, tmp_path, monkeypa
     assert "| - |" not in open(os.path.join(run, "tables.md")).read()  # every cell of every table filled
 
 
+def test_shards_split_the_settings_asked_for(smoke_run, tmp_path, monkeypatch):
+    """--settings SE-CV,CE-CV --shard i/2: each shard runs half of those 8 cells, none of another setting."""
+    run = str(tmp_path / "run")
+    shutil.copytree(smoke_run, run, ignore=shutil.ignore_patterns("results.jsonl"))
+    ran = []
+    monkeypatch.setattr(imitate, "imitate", lambda run_dir, demo, view, *args, **kwargs: ran.append((demo, view)))
+    for i in (0, 1):
+        tables.table(run, SMOKE, settings=("SE-CV", "CE-CV"), demos_per_cell=2, shard=(i, 2))
+        ran.append(i)
+    first, second = ran[:ran.index(0)], ran[ran.index(0) + 1:-1]
+    assert len(first) == len(second) == 4 and len(set(first + second)) == 8
+    assert {view for _, view in first + second} == {"diagonal"}  # SE-CV and CE-CV are the diagonal view's settings
+
+
 def test_baselines_join_the_table_as_columns_and_are_not_rerun(smoke_run, tmp_path):
     """--methods giil,genrl,aime-nob: each cell asked for gets the baselines' seeds, the tables show
     their columns beside the paper's, and a second call runs nothing; an unknown method is a one-line error."""
