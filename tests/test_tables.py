@@ -65,12 +65,10 @@ def test_shards_split_the_settings_asked_for(smoke_run, tmp_path, monkeypatch):
     """--settings SE-CV,CE-CV --shard i/2: each shard runs half of those 8 cells, none of another setting."""
     run = str(tmp_path / "run")
     shutil.copytree(smoke_run, run, ignore=shutil.ignore_patterns("results.jsonl"))
-    ran = []
-    monkeypatch.setattr(imitate, "imitate", lambda run_dir, demo, view, *args, **kwargs: ran.append((demo, view)))
-    for i in (0, 1):
+    first, second = [], []
+    for i, ran in enumerate((first, second)):
+        monkeypatch.setattr(imitate, "imitate", lambda run_dir, demo, view, *args, **kwargs: ran.append((demo, view)))
         tables.table(run, SMOKE, settings=("SE-CV", "CE-CV"), demos_per_cell=2, shard=(i, 2))
-        ran.append(i)
-    first, second = ran[:ran.index(0)], ran[ran.index(0) + 1:-1]
     assert len(first) == len(second) == 4 and len(set(first + second)) == 8
     assert {view for _, view in first + second} == {"diagonal"}  # SE-CV and CE-CV are the diagonal view's settings
 
