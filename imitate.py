@@ -29,6 +29,7 @@ Missing demos of the one body x task imitated are collected first (collect.py, t
 import argparse
 import copy
 import dataclasses
+import fcntl
 import os
 import time
 
@@ -85,7 +86,13 @@ def demo_folder(cfgs, demo, view):
     body, _, task = demo.rpartition("_")
     if body not in envs.BODIES or task not in envs.TASKS:
         raise ValueError(f"unknown demo {demo!r}: valid demos are {', '.join(b + '_' + t for b in envs.BODIES for t in envs.TASKS)}")
-    collect.collect_demos(collect.preset_config(tc.preset), tc.data, os.cpu_count(), tc.encoder, [(body, task)])
+    os.makedirs(os.path.join(tc.data, "demos"), exist_ok=True)
+    lock = os.open(os.path.join(tc.data, "demos"), os.O_RDONLY)
+    try:  # table shards in parallel: one collects, the others wait on the folder's lock, then find the episodes on disk
+        fcntl.flock(lock, fcntl.LOCK_EX)
+        collect.collect_demos(collect.preset_config(tc.preset), tc.data, os.cpu_count(), tc.encoder, [(body, task)])
+    finally:
+        os.close(lock)
     return os.path.join(tc.data, "demos", f"{demo}_{view}")
 
 

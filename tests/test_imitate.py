@@ -231,3 +231,28 @@ def test_ot_probe_scores_goals_alike_for_alike_goals(smoke_run):
     lines = out.stdout.strip().splitlines()
     assert [l.split(" |")[0] for l in lines[1:-1]] == [f"SE-SV {t}" for t in ("stand", "walk", "run", "jump")]
     assert lines[-1].startswith("own task's goals ranked first in ") and " of 4 cells" in lines[-1]
+
+
+def test_parallel_shards_collect_demos_one_at_a_time(tmp_path, monkeypatch):
+    """Two table shards needing the same demos: the second waits for the first's collection (no clashing writes)."""
+    import threading
+    import time
+
+    import collect
+
+    active, overlaps = [], []
+
+    def slow_collect(*args):
+        active.append(1)
+        overlaps.append(len(active))
+        time.sleep(0.3)
+        active.pop()
+
+    monkeypatch.setattr(collect, "collect_demos", slow_collect)
+    cfgs = {"train": train.TrainConfig(data=str(tmp_path))}
+    shards = [threading.Thread(target=imitate.demo_folder, args=(cfgs, "walker_run", "side")) for _ in range(2)]
+    for shard in shards:
+        shard.start()
+    for shard in shards:
+        shard.join()
+    assert overlaps == [1, 1]
