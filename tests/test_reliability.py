@@ -183,7 +183,7 @@ def test_phase_2_divergence_stops_before_writing_a_result(smoke_run, tmp_path, m
         return loss * float("nan"), critic_loss, metrics
 
     monkeypatch.setattr(imitate, "goal_inference_loss", nan_loss)
-    with pytest.raises(ValueError, match=r"GIIL-FT seed 0: Eq. 5 L_GI is nan at update 1: stopped"):
+    with pytest.raises(ValueError, match=r"GIIL-FT seed 0: Eq. 5 L_GI is nan at update 0: stopped"):
         imitate.imitate(run, "walker_run", "side", True, SMOKE_IMITATE, zero_shot=False)
     rows = rundir.read_jsonl(os.path.join(run, "results.jsonl"))
     assert [r["method"] for r in rows] == ["GIIL-ZS (demo 0)"]  # its zero-shot evaluation, written before; no GIIL-FT row
