@@ -56,7 +56,7 @@ class ImitateConfig:
     preset: str = "cpu"
     steps: int = 300  # goal-finetuning updates (ours, cpu: ~3 min on 2 cores)
     starts: int = 64  # imagined trajectories per L_GI update (ours)
-    goal_lr: float = 3e-4  # Adam on g (ours; at 3e-3 the finetuned goals scored lower, docs/experiments.md)
+    goal_lr: float = 3e-4  # Adam on g (ours; chosen on same-body cells: 1e-3 scored lower, docs/experiments.md)
     value_only: int = 1  # 1: Eq. 5 as written, g's gradient through V_ot alone; 0: through the OT rewards too (ours, measured equal)
     critic_warmup: int = 0  # first updates that train V_ot only, g held (ours, measured equal to none)
     critic_lr: float = 8e-5  # V_ot, as the phase-1 critic (Dreamer V1)
