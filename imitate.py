@@ -224,9 +224,10 @@ def write_video(path, demo_frames, agent_frames):
     writer.release()
 
 
-def imitate(run_dir, demo, view, finetune, ic, zero_shot=True):
+def imitate(run_dir, demo, view, finetune, ic, zero_shot=True, done=frozenset()):
     """GIIL-ZS (unless not zero_shot) and GIIL-FT (with finetune) for one demo folder; appends each evaluation
-    to runs/<name>/results.jsonl and returns the rows."""
+    to runs/<name>/results.jsonl and returns the rows. done: (method, seed) pairs this cell already has (tables.table),
+    not run again: a cell cut off after some seeds goes on from the first missing one."""
     rundir.check_flags(ic)
     if finetune and ic.critic_warmup >= ic.steps:
         raise ValueError(f"--critic-warmup {ic.critic_warmup} is not below --steps {ic.steps}: the goal would never move (GIIL-FT = GIIL-ZS)")
@@ -270,15 +271,20 @@ def imitate(run_dir, demo, view, finetune, ic, zero_shot=True):
     with torch.no_grad():
         goals = [models["goal_vae"].goal(torch.as_tensor(d["p"][-1], device=device)) for d in demos]  # GIIL-ZS: g = q(s | p_T)
     for k, goal in enumerate(tqdm(goals if zero_shot else [], desc=f"GIIL-ZS {demo} {view}")):
+        if ("GIIL-ZS", k) in done:
+            continue
         t0 = time.time()  # each row's own time, so a table's cost is the sum (rows before 2026-11-22 overlap)
         evaluate_goal("GIIL-ZS", k, goal, demos[k]["pixels"])
     if finetune:
         psi_star = {k: {n: t.clone() for n, t in m.state_dict().items()} for k, m in models.items()}  # clones: optimisers step in place
-        for seed in range(ic.seeds):
+        for seed in range(ic.seeds):  # each seed is independent of the others: its own RNG seeds, psi* reloaded
             for k, m in models.items():  # each seed's GIIL-ZS (demo 0) and GIIL-FT start from psi*
                 m.load_state_dict(psi_star[k])
             t0 = time.time()
-            evaluate_goal("GIIL-ZS (demo 0)", seed, goals[0], demos[0]["pixels"])
+            if ("GIIL-ZS (demo 0)", seed) not in done:
+                evaluate_goal("GIIL-ZS (demo 0)", seed, goals[0], demos[0]["pixels"])
+            if ("GIIL-FT", seed) in done:
+                continue
             t0 = time.time()  # GIIL-FT's time: finetuning and its evaluation
             goal = finetune_goal(models, cfgs, ic, ot_cfg, torch.as_tensor(demos[0]["p"][-1], device=device), [d["p"] for d in demos], seed, device,
                                  ckpt.get("optims"))

@@ -109,10 +109,11 @@ def table(run_dir, ic, settings=SETTINGS, demos_per_cell=10, shard=(0, 1), metho
         if not os.path.isdir(folder):
             continue
         returns = [round(e["return"], 3) for e in collect.load_folder(folder, ())]
-        count = lambda m: len({r["seed"] for r in finished(load_results(run_dir), demo, view, returns) if r["method"] == m})
+        done = {(r["method"], r["seed"]) for r in finished(load_results(run_dir), demo, view, returns)}
+        count = lambda m: sum(method == m for method, _ in done)
         zs, ft = count("GIIL-ZS") < demos_per_cell, min(count("GIIL-FT"), count("GIIL-ZS (demo 0)")) < ic.seeds
-        if (zs or ft) and run_now and "giil" in methods:
-            imitate.imitate(run_dir, demo, view, ft, ic, zero_shot=zs)
+        if (zs or ft) and run_now and "giil" in methods:  # only the seeds missing (a cell cut off goes on where it was)
+            imitate.imitate(run_dir, demo, view, ft, ic, zero_shot=zs, done=done)
         for name, method in BASELINES.items():
             module, cfg, _ = baselines[method]
             if count(method) < cfg.seeds and run_now and name in methods:
