@@ -12,10 +12,9 @@ GIIL-FT  from the first demo's zero-shot goal, g is optimised by L_GI (Eq. 5): i
          paragraph): stop-gradients keep g out of L_MG and psi out of L_GI. `seeds` seeds.
 
 Deviation (measured in docs/experiments.md, Phase 2): psi stays frozen by default (joint finetuning made the agent
-fall in episodes where the frozen policy did not). Two variants of ours, measured equal to Eq. 5 as written on
-same-body cells and so off by default, stay as flags because the stickman's table was measured with them:
-`--value-only 0` (g's gradient through the OT rewards of the lambda-returns too) and `--critic-warmup 100` (V_ot
-alone for the first updates).
+fall in episodes where the frozen policy did not). Two variants of ours were measured equal to Eq. 5 as written on
+same-body cells and removed: g's gradient through the OT rewards of the lambda-returns too, and V_ot alone for the
+first 100 updates.
 
 Choices where the paper is silent:
 * start states of the goal-inference imagination: demo features mapped into the latent space by the goal encoder
@@ -57,8 +56,6 @@ class ImitateConfig:
     steps: int = 300  # goal-finetuning updates (ours, cpu: ~3 min on 2 cores)
     starts: int = 64  # imagined trajectories per L_GI update (ours)
     goal_lr: float = 3e-4  # Adam on g (ours; chosen on same-body cells: 1e-3 scored lower, docs/experiments.md)
-    value_only: int = 1  # 1: Eq. 5 as written, g's gradient through V_ot alone; 0: through the OT rewards too (ours, measured equal)
-    critic_warmup: int = 0  # first updates that train V_ot only, g held (ours, measured equal to none)
     critic_lr: float = 8e-5  # V_ot, as the phase-1 critic (Dreamer V1)
     finetune_policy: int = 0  # 0: the policy stays exactly psi* (ours: joint finetuning made the agent fall); 1: psi jointly finetuned by L_MG (Sec. 4)
     seeds: int = 5  # GIIL-FT seeds (the paper: 3; 5 so that FT vs ZS(demo 0) is measured beyond the noise)
@@ -118,7 +115,7 @@ def body_pool(models, cfgs, segments, rng, device, n=32):
     return {k: v.flatten(0, 1) for k, v in post.items()}, bc
 
 
-def goal_inference_loss(models, critic_ot, slow_ot, goal, start, demo_p, cfgs, ot_cfg, offsets=None, value_only=True):  # Eq. 5
+def goal_inference_loss(models, critic_ot, slow_ot, goal, start, demo_p, cfgs, ot_cfg, offsets=None):  # Eq. 5
     """L_GI: -lambda-returns of the OT reward of the frozen policy's imagined rollouts, differentiable in g only.
     goal (F,) the parameter; start dict of (N, .). -> (L_GI, V_ot critic loss, metrics)."""
     ac = cfgs["ac"]
@@ -126,13 +123,12 @@ def goal_inference_loss(models, critic_ot, slow_ot, goal, start, demo_p, cfgs, o
     N = len(start["deter"])
     with policy.freeze(wm, vae, actor, slow_ot):  # psi*, the world model and the goal decoder are constants here
         feat, _, _ = policy.rollout(wm, actor, start, goal.expand(N, -1), ac.horizon)  # (N, H + 1, F)
-        # (N, H): r^ot on arrival, differentiable in feat through the OT cost (the plan a constant, ot_reward.py)
-        reward, best = ot_reward.ot_reward(vae.decode(feat[:, 1:]), demo_p, ot_cfg, offsets)
-        reward = reward.detach() if value_only else reward
+        with torch.no_grad():  # (N, H): r^ot on arrival, a constant for g (Eq. 5 differentiates V_ot only)
+            reward, _ = ot_reward.ot_reward(vae.decode(feat[:, 1:]), demo_p, ot_cfg, offsets)
         value = slow_ot(feat, None)  # (N, H + 1): V_ot(s), differentiable in feat
         returns = policy.lambda_return(reward, value, ac.gamma, ac.lambda_)  # (N, H)
     # Eq. 5: -E[sum V], the lambda-returns standing for the values as in Dreamer V1; g's gradient flows through V_ot of
-    # the imagined states (and with value_only off, ours, through their OT rewards too)
+    # the imagined states
     loss = -returns.mean()
     c_loss, c_metrics = policy.critic_loss(critic_ot, feat, None, returns)
     return loss, c_loss, {"L_GI": loss.item(), "ot_reward": reward.mean().item(), **{"ot_" + k: v for k, v in c_metrics.items()}}
@@ -197,9 +193,8 @@ def finetune_goal(models, cfgs, ic, ot_cfg, p_goal, demo_p, seed, device, optim_
         with torch.no_grad():
             start = models["goal_vae"].encode(demo_p[torch.randint(K, (ic.starts,), device=device), t0])
         start = {k: start[k] for k in ("deter", "stoch", "mean", "std")}
-        gi_loss, ot_loss, metrics = goal_inference_loss(models, critic_ot, slow_ot, goal, start, demo_p, cfgs, ot_cfg, t0 + 1, ic.value_only)
-        warming_up = step < ic.critic_warmup
-        for opt, loss, what in [(opt_ot, ot_loss, "V_ot loss")] if warming_up else [(opt_goal, gi_loss, "Eq. 5 L_GI"), (opt_ot, ot_loss, "V_ot loss")]:
+        gi_loss, ot_loss, metrics = goal_inference_loss(models, critic_ot, slow_ot, goal, start, demo_p, cfgs, ot_cfg, t0 + 1)
+        for opt, loss, what in ((opt_goal, gi_loss, "Eq. 5 L_GI"), (opt_ot, ot_loss, "V_ot loss")):
             checked_step(opt, loss, what, seed, step)
         policy.ema_update(slow_ot, critic_ot, ac.slow_critic_rate)
         if ic.finetune_policy:  # fresh D_body segments every update, as in phase 1: L_MG goes on training on all of D_body
@@ -229,8 +224,6 @@ def imitate(run_dir, demo, view, finetune, ic, zero_shot=True, done=frozenset())
     to runs/<name>/results.jsonl and returns the rows. done: (method, seed) pairs this cell already has (tables.table),
     not run again: a cell cut off after some seeds goes on from the first missing one."""
     rundir.check_flags(ic)
-    if finetune and ic.critic_warmup >= ic.steps:
-        raise ValueError(f"--critic-warmup {ic.critic_warmup} is not below --steps {ic.steps}: the goal would never move (GIIL-FT = GIIL-ZS)")
     device = "cuda" if torch.cuda.is_available() else "cpu"
     cfgs, models, ckpt = train.load_run(run_dir, device)
     tc = cfgs["train"]
