@@ -150,13 +150,20 @@ def airborne(physics):
     return not np.any((contacts.geom1 == floor) | (contacts.geom2 == floor))
 
 
+def posture(body, torso_z, torso_zz):
+    """The stand reward (3 standing + upright) / 4 of a torso height and its zz orientation (arrays too): 1 upright at
+    stand height. In an observation (Env._observation) torso_zz is obs[0] (torso xx = zz for a planar body) and torso_z
+    obs[-1 - nv]."""
+    stand_height = STAND_HEIGHT[body]
+    standing = rewards.tolerance(torso_z, bounds=(stand_height, float("inf")), margin=stand_height / 2)
+    return (3 * standing + (1 + torso_zz) / 2) / 4
+
+
 def task_reward(physics, body, task):
     """The shared reward of one control step (module docstring); equals dm_control's walker for stand/walk/run."""
     height = physics.named.data.xpos["torso", "z"]
     stand_height = STAND_HEIGHT[body]
-    standing = rewards.tolerance(height, bounds=(stand_height, float("inf")), margin=stand_height / 2)
-    upright = (1 + physics.named.data.xmat["torso", "zz"]) / 2
-    stand = (3 * standing + upright) / 4
+    stand = posture(body, height, physics.named.data.xmat["torso", "zz"])
     if task == "stand":
         return stand
     if task == "jump":

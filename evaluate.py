@@ -32,9 +32,10 @@ BODY_TASKS = ("stand", "walk", "run")  # the tasks of D_body, whose average is t
 
 
 @torch.no_grad()
-def run_episodes(env_list, models, goals, steps, obs_key, seed, render=False, random_actions=False):
+def run_episodes(env_list, models, goals, steps, obs_key, seed, render=False, random_actions=False, on_step=None):
     """One episode in each env of env_list (reset with seeds seed, seed + 1, ...), acting with pi(a | s_t, g_i),
     deterministic (the tanh of the mean), or uniform random actions. goals (N, F), unused with random_actions.
+    on_step(env_list), if given, is called after every step (probes read the physics there).
     -> returns (N,) float array, frames (N, steps + 1, 64, 64, 3) if render else None."""
     wm, actor = models["world_model"], models["actor"]
     device = next(wm.parameters()).device
@@ -60,6 +61,8 @@ def run_episodes(env_list, models, goals, steps, obs_key, seed, render=False, ra
         results = [env.step(a) for env, a in zip(env_list, action)]
         obs = np.stack([r[0] for r in results])
         total += [r[1] for r in results]
+        if on_step:
+            on_step(env_list)
     return total, (np.stack(frames, 1) if render else None)
 
 

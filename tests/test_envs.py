@@ -35,6 +35,20 @@ def test_stickman_structure():
     assert 34 < total_mass < 36  # GenRL's stickman (Mazzaglia et al. 2024) at MuJoCo's default density: ~34.9 kg
 
 
+@pytest.mark.parametrize("body", envs.BODIES)
+def test_posture_from_an_observation_equals_the_stand_reward(body):
+    """envs.posture of a stored state's torso height (obs[-1 - nv]) and zz (obs[0]) = the stand reward of the physics."""
+    env = envs.make_env(body, "stand", seed=1)
+    env.reset()
+    rng = np.random.default_rng(0)
+    postures = []
+    for _ in range(30):
+        obs, *_ = env.step(rng.uniform(-1, 1, env.action_dim))
+        postures.append(envs.task_reward(env.physics, body, "stand"))
+        assert envs.posture(body, obs[-1 - env.physics.model.nv], obs[0]) == pytest.approx(postures[-1], abs=1e-6)
+    assert np.ptp(postures) > 0.05  # the body moved: the check compared different postures
+
+
 def test_stickman_stands_and_falls():
     """Zero torque from upright: it collapses to the floor; it never sinks through it."""
     env = envs.make_env("stickman", "stand")

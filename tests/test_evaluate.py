@@ -34,8 +34,10 @@ def test_run_episodes_sums_each_environment_s_true_reward(smoke_run):
 
     cfgs, models, _ = train.load_run(smoke_run)
     env_list = [envs.make_env("walker", "walk") for _ in range(2)]
-    returns, frames = evaluate.run_episodes(env_list, models, None, 5, "state", seed=3, render=True, random_actions=True)
-    assert returns.shape == (2,) and frames.shape == (2, 6, 64, 64, 3)
+    heights = []  # on_step reads the physics after every step
+    on_step = lambda env_list: heights.append([env.physics.named.data.xpos["torso", "z"] for env in env_list])
+    returns, frames = evaluate.run_episodes(env_list, models, None, 5, "state", seed=3, render=True, random_actions=True, on_step=on_step)
+    assert returns.shape == (2,) and frames.shape == (2, 6, 64, 64, 3) and np.array(heights).shape == (5, 2)
     rng = np.random.default_rng(3)
     for env, seed in zip(env_list, (3, 4)):
         env.reset(seed=seed)
@@ -43,7 +45,7 @@ def test_run_episodes_sums_each_environment_s_true_reward(smoke_run):
     for _ in range(5):
         actions = rng.uniform(-1, 1, (2, env_list[0].action_dim)).astype(np.float32)
         total += [env.step(a)[1] for env, a in zip(env_list, actions)]
-    assert np.allclose(returns, total)
+    assert np.allclose(returns, total) and heights[-1] == [env.physics.named.data.xpos["torso", "z"] for env in env_list]
     scores = json.load(open(os.path.join(smoke_run, "goal_reaching.json")))
     assert set(scores) == {"stand", "walk", "run", "jump"}
 

@@ -1,0 +1,81 @@
+"""The getting-up probe of docs/experiments.md (Phase 1): where the goal-reaching benchmark's points are lost, read
+through the body's posture, the stand reward (3 standing + upright) / 4 (envs.posture: 1 upright at stand height;
+walk and run multiply their speed term by it). Every episode starts from DMC's random pose and falls first. An episode
+is "up at the end" when its mean posture over its last 100 steps is >= 0.8. Per task: the mean posture over all
+steps, the share of episodes up at the end, the mean score of those up and of those down, and the mean of all.
+Two tables:
+* the agent: the benchmark's own episodes (same goals, seeds, threads and matmul route as `python train.py --evaluate`,
+  so the last column is the benchmark's number to the digit);
+* the D_body task episodes it was trained on (<data>/<body>, from their stored states), with --data-too.
+Run from the repository root:
+
+    python docs/getting_up.py agents/stickman --data-too
+"""
+import argparse
+import glob
+import os
+import sys
+
+import numpy as np
+import torch
+
+sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+import collect  # noqa: E402
+import envs  # noqa: E402
+import evaluate  # noqa: E402
+import rundir  # noqa: E402
+import train  # noqa: E402
+
+LAST, UP = 100, 0.8  # "up at the end": mean posture over the last LAST steps >= UP
+
+
+def row(name, posture, scores):
+    """One table row from posture (steps, episodes) and scores (episodes,)."""
+    up = posture[-LAST:].mean(0) >= UP
+    cell = lambda s: f"{s.mean():.1f} +- {evaluate.stderr(s):.1f} ({len(s)})" if len(s) else "-"
+    return f"| {name} | {posture.mean():.2f} | {up.mean():.2f} | {cell(scores[up])} | {cell(scores[~up])} | {cell(scores)} |"
+
+
+def agent_rows(models, cfgs, body):
+    for task in evaluate.BODY_TASKS:
+        demos = collect.load_folder(os.path.join(cfgs["train"].data, "demos", f"{body}_{task}_side"), ("p",))
+        with torch.no_grad():  # as evaluate.goal_reaching: g = q(s | p_T) of each demo, 3 episodes each, seeds from 30000
+            goals = models["goal_vae"].goal(torch.as_tensor(np.stack([d["p"][-1] for d in demos]))).repeat_interleave(3, 0)
+        env_list = [envs.make_env(body, task) for _ in range(len(goals))]
+        posture = []  # (steps, episodes)
+        torso = lambda env: (env.physics.named.data.xpos["torso", "z"], env.physics.named.data.xmat["torso", "zz"])
+        record = lambda env_list: posture.append([envs.posture(body, *torso(env)) for env in env_list])
+        returns, _ = evaluate.run_episodes(env_list, models, goals, envs.EPISODE_STEPS, cfgs["wm"].obs, 30_000, on_step=record)
+        yield row(task, np.array(posture), np.array([evaluate.episode_score(task, r, envs.EPISODE_STEPS) for r in returns]))
+
+
+def data_rows(folder, body):
+    height = -1 - envs.make_env(body, "stand").physics.model.nv  # the torso height's place in a state (envs.posture)
+    for task in evaluate.BODY_TASKS:
+        episodes = [collect.load_episode(path, ("state",)) for path in sorted(glob.glob(os.path.join(folder, f"{task}_*.npz")))]
+        if not episodes:
+            raise FileNotFoundError(f"no {task} episodes in {folder}: collect them with `python collect.py --env {body}`")
+        posture = np.stack([envs.posture(body, e["state"][:, height], e["state"][:, 0]) for e in episodes], 1)
+        yield row(task, posture, np.array([float(envs.normalized_score(task, e["return"])) for e in episodes]))
+
+
+def main():
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("run", help="a run or agent folder, e.g. agents/stickman")
+    parser.add_argument("--data-too", action="store_true", help="also the D_body task episodes of the run's data folder")
+    args = parser.parse_args()
+    torch.set_num_threads(train.TrainConfig.threads)  # the benchmark's threads and matmul route (train.py --evaluate):
+    rundir.fast_matmul()  # other float sums change a stickman's episodes after a few steps
+    cfgs, models, _ = train.load_run(args.run)
+    body = cfgs["train"].env
+    header = "| posture | up at the end | score of those up | score of those down | all |\n|---|---|---|---|---|---|"
+    print(f"| {args.run} (benchmark episodes) {header}")
+    print("\n".join(agent_rows(models, cfgs, body)))
+    if args.data_too:
+        folder = os.path.join(cfgs["train"].data, body)
+        print(f"\n| {folder} (D_body task episodes) {header}")
+        print("\n".join(data_rows(folder, body)))
+
+
+if __name__ == "__main__":
+    main()
