@@ -6,10 +6,12 @@ steps, the share of episodes up at the end, the mean score of those up and of th
 Two tables:
 * the agent: the benchmark's own episodes (same goals, seeds, threads and matmul route as `python train.py --evaluate`,
   so the last column is the benchmark's number to the digit);
-* the D_body task episodes it was trained on (<data>/<body>, from their stored states), with --data-too.
+* the D_body task episodes it was trained on (<data>/<body>, from their stored states), with --data-too;
+* with --data-goals, does the goal decide whether it gets up: the stand task with goals q(s | p_T) of D_body stand
+  episodes that ended up, then of those that ended down (the first 30 of each by name, the benchmark's seeds).
 Run from the repository root:
 
-    python docs/getting_up.py agents/stickman --data-too
+    python docs/getting_up.py agents/stickman --data-too --data-goals
 """
 import argparse
 import glob
@@ -36,33 +38,52 @@ def row(name, posture, scores):
     return f"| {name} | {posture.mean():.2f} | {up.mean():.2f} | {cell(scores[up])} | {cell(scores[~up])} | {cell(scores)} |"
 
 
+def agent_row(name, models, cfgs, body, task, p_goals):
+    """The policy's episodes of `task` towards g = q(s | p) of each row of p_goals, seeds from 30000 (the benchmark's)."""
+    with torch.no_grad():
+        goals = models["goal_vae"].goal(torch.as_tensor(p_goals))
+    env_list = [envs.make_env(body, task) for _ in range(len(goals))]
+    posture = []  # (steps, episodes)
+    torso = lambda env: (env.physics.named.data.xpos["torso", "z"], env.physics.named.data.xmat["torso", "zz"])
+    record = lambda env_list: posture.append([envs.posture(body, *torso(env)) for env in env_list])
+    returns, _ = evaluate.run_episodes(env_list, models, goals, envs.EPISODE_STEPS, cfgs["wm"].obs, 30_000, on_step=record)
+    return row(name, np.array(posture), np.array([evaluate.episode_score(task, r, envs.EPISODE_STEPS) for r in returns]))
+
+
 def agent_rows(models, cfgs, body):
-    for task in evaluate.BODY_TASKS:
+    for task in evaluate.BODY_TASKS:  # as evaluate.goal_reaching: each demo's last feature, the goal of 3 episodes
         demos = collect.load_folder(os.path.join(cfgs["train"].data, "demos", f"{body}_{task}_side"), ("p",))
-        with torch.no_grad():  # as evaluate.goal_reaching: g = q(s | p_T) of each demo, 3 episodes each, seeds from 30000
-            goals = models["goal_vae"].goal(torch.as_tensor(np.stack([d["p"][-1] for d in demos]))).repeat_interleave(3, 0)
-        env_list = [envs.make_env(body, task) for _ in range(len(goals))]
-        posture = []  # (steps, episodes)
-        torso = lambda env: (env.physics.named.data.xpos["torso", "z"], env.physics.named.data.xmat["torso", "zz"])
-        record = lambda env_list: posture.append([envs.posture(body, *torso(env)) for env in env_list])
-        returns, _ = evaluate.run_episodes(env_list, models, goals, envs.EPISODE_STEPS, cfgs["wm"].obs, 30_000, on_step=record)
-        yield row(task, np.array(posture), np.array([evaluate.episode_score(task, r, envs.EPISODE_STEPS) for r in returns]))
+        yield agent_row(task, models, cfgs, body, task, np.stack([d["p"][-1] for d in demos]).repeat(3, 0))
+
+
+def data_episodes(folder, body, task, keys=("state",)):
+    """D_body's episodes of `task` and each one's posture (steps,) from its stored states."""
+    episodes = [collect.load_episode(path, keys) for path in sorted(glob.glob(os.path.join(folder, f"{task}_*.npz")))]
+    if not episodes:
+        raise FileNotFoundError(f"no {task} episodes in {folder}: collect them with `python collect.py --env {body}`")
+    height = -1 - envs.make_env(body, "stand").physics.model.nv  # the torso height's place in a state (envs.posture)
+    return episodes, [envs.posture(body, e["state"][:, height], e["state"][:, 0]) for e in episodes]
 
 
 def data_rows(folder, body):
-    height = -1 - envs.make_env(body, "stand").physics.model.nv  # the torso height's place in a state (envs.posture)
     for task in evaluate.BODY_TASKS:
-        episodes = [collect.load_episode(path, ("state",)) for path in sorted(glob.glob(os.path.join(folder, f"{task}_*.npz")))]
-        if not episodes:
-            raise FileNotFoundError(f"no {task} episodes in {folder}: collect them with `python collect.py --env {body}`")
-        posture = np.stack([envs.posture(body, e["state"][:, height], e["state"][:, 0]) for e in episodes], 1)
-        yield row(task, posture, np.array([float(envs.normalized_score(task, e["return"])) for e in episodes]))
+        episodes, posture = data_episodes(folder, body, task)
+        yield row(task, np.stack(posture, 1), np.array([float(envs.normalized_score(task, e["return"])) for e in episodes]))
+
+
+def data_goal_rows(models, cfgs, folder, body):
+    episodes, posture = data_episodes(folder, body, "stand", ("state", "p"))
+    up = np.array([p[-LAST:].mean() >= UP for p in posture])
+    for name, chosen in (("stand, goals of D_body episodes that ended up", up), ("stand, goals of those that ended down", ~up)):
+        p_goals = np.stack([episodes[i]["p"][-1] for i in np.flatnonzero(chosen)[:30]])
+        yield agent_row(name, models, cfgs, body, "stand", p_goals)
 
 
 def main():
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("run", help="a run or agent folder, e.g. agents/stickman")
     parser.add_argument("--data-too", action="store_true", help="also the D_body task episodes of the run's data folder")
+    parser.add_argument("--data-goals", action="store_true", help="also stand towards goals of D_body episodes that ended up / down")
     args = parser.parse_args()
     torch.set_num_threads(train.TrainConfig.threads)  # the benchmark's threads and matmul route (train.py --evaluate):
     rundir.fast_matmul()  # other float sums change a stickman's episodes after a few steps
@@ -71,10 +92,13 @@ def main():
     header = "| posture | up at the end | score of those up | score of those down | all |\n|---|---|---|---|---|---|"
     print(f"| {args.run} (benchmark episodes) {header}")
     print("\n".join(agent_rows(models, cfgs, body)))
+    folder = os.path.join(cfgs["train"].data, body)
     if args.data_too:
-        folder = os.path.join(cfgs["train"].data, body)
         print(f"\n| {folder} (D_body task episodes) {header}")
         print("\n".join(data_rows(folder, body)))
+    if args.data_goals:
+        print(f"\n| {args.run} (goals from {folder}) {header}")
+        print("\n".join(data_goal_rows(models, cfgs, folder, body)))
 
 
 if __name__ == "__main__":
