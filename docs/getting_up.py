@@ -3,7 +3,7 @@ through the body's posture, the stand reward (3 standing + upright) / 4 (envs.po
 walk and run multiply their speed term by it). Every episode starts from DMC's random pose and falls first. An episode
 is "up at the end" when its mean posture over its last 100 steps is >= 0.8. Per task: the mean posture over all
 steps, the share of episodes up at the end, the mean score of those up and of those down, and the mean of all.
-Two tables:
+Three readings:
 * the agent: the benchmark's own episodes (same goals, seeds, threads and matmul route as `python train.py --evaluate`,
   so the last column is the benchmark's number to the digit);
 * the D_body task episodes it was trained on (<data>/<body>, from their stored states), with --data-too;

@@ -68,3 +68,19 @@ def test_reachable_reward_across_runs_by_hand(tmp_path):
     (tmp_path / "old").mkdir()  # a run from before the diagnostic
     (tmp_path / "old" / "metrics.jsonl").write_text(json.dumps({"step": 100}) + "\n")
     assert evaluate.reachable_across_runs([str(tmp_path / "old")]) == []
+
+
+def test_getting_up_row_classes_episodes_by_their_last_steps():
+    """docs/getting_up.py: an episode is up when its mean posture over the last 100 steps is >= 0.8, whatever came before."""
+    import importlib.util
+
+    path = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "docs", "getting_up.py")
+    spec = importlib.util.spec_from_file_location("getting_up", path)
+    getting_up = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(getting_up)
+    posture = np.zeros((500, 3))
+    posture[-100:, 0] = 0.85  # up only at the end
+    posture[:400, 1] = 1.0  # up, then fell for the last 100 steps
+    posture[-100:, 2] = [0.9] * 50 + [0.6] * 50  # mean 0.75: down
+    line = getting_up.row("stand", posture, np.array([90.0, 10.0, 30.0]))
+    assert line == f"| stand | {posture.mean():.2f} | 0.33 | 90.0 +- 0.0 (1) | 20.0 +- 10.0 (2) | 43.3 +- 24.0 (3) |"
