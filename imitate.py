@@ -11,8 +11,8 @@ GIIL-FT  from the first demo's zero-shot goal, g is optimised by L_GI (Eq. 5): i
          `--finetune-policy 1`, psi is finetuned jointly by L_MG (Eq. 4) with g among its goals (Sec. 4, last
          paragraph): stop-gradients keep g out of L_MG and psi out of L_GI. `seeds` seeds.
 
-Deviation (measured in docs/experiments.md, Phase 2): psi stays frozen by default (joint finetuning scored lower over
-the walker's whole SE-SV and SE-CV columns, -3.9 +- 2.7 paired over 40 seeds). Two variants of ours were measured equal to Eq. 5 as written on
+Deviation (measured in docs/experiments.md, Phase 2): psi stays frozen by default (joint finetuning did not help over
+the shipped agents' whole SE-SV and SE-CV columns: walker -3.9 +- 2.7, stickman +1.8 +- 3.2, paired over 40 seeds each). Two variants of ours were measured equal to Eq. 5 as written on
 same-body cells and removed: g's gradient through the OT rewards of the lambda-returns too, and V_ot alone for the
 first 100 updates.
 
@@ -57,7 +57,7 @@ class ImitateConfig:
     starts: int = 64  # imagined trajectories per L_GI update (ours)
     goal_lr: float = 3e-4  # Adam on g (ours; chosen on same-body cells: 1e-3 scored lower, docs/experiments.md)
     critic_lr: float = 8e-5  # V_ot, as the phase-1 critic (Dreamer V1)
-    finetune_policy: int = 0  # 0: the policy stays exactly psi* (ours: joint finetuning scored -3.9 +- 2.7 on the walker's same-body cells); 1: psi jointly finetuned by L_MG (Sec. 4)
+    finetune_policy: int = 0  # 0: the policy stays exactly psi* (ours: joint finetuning did not help on same-body cells, docs/experiments.md); 1: psi jointly finetuned by L_MG (Sec. 4)
     seeds: int = 5  # GIIL-FT seeds (the paper: 3; 5 so that FT vs ZS(demo 0) is measured beyond the noise)
     eval_episodes: int = 3  # episodes per GIIL-ZS goal and per GIIL-FT seed
     eval_steps: int = envs.EPISODE_STEPS
