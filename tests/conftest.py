@@ -42,3 +42,14 @@ def train_args(**given):
         for field in dataclasses.fields(cls):
             setattr(ns, f"{name}.{field.name}", given.get(field.name) if name == "train" else given.get(f"{name}.{field.name}"))
     return ns
+
+
+def docs_script(name):
+    """A script of docs/ (not a package) imported as a module, e.g. docs_script("ft_pairs")."""
+    import importlib.util
+
+    path = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "docs", f"{name}.py")
+    spec = importlib.util.spec_from_file_location(name, path)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module

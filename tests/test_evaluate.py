@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 
 import evaluate
+from conftest import docs_script
 
 
 def test_summary_and_across_runs_by_hand(tmp_path):
@@ -72,12 +73,7 @@ def test_reachable_reward_across_runs_by_hand(tmp_path):
 
 def test_getting_up_row_classes_episodes_by_their_last_steps():
     """docs/getting_up.py: an episode is up when its mean posture over the last 100 steps is >= 0.8, whatever came before."""
-    import importlib.util
-
-    path = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "docs", "getting_up.py")
-    spec = importlib.util.spec_from_file_location("getting_up", path)
-    getting_up = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(getting_up)
+    getting_up = docs_script("getting_up")
     posture = np.zeros((500, 3))
     posture[-100:, 0] = 0.85  # up only at the end
     posture[:400, 1] = 1.0  # up, then fell for the last 100 steps

@@ -11,6 +11,7 @@ import torch
 import imitate
 import ot_reward
 import train
+from conftest import docs_script
 
 SMOKE = imitate.ImitateConfig(**imitate.PRESETS["smoke"])
 
@@ -198,14 +199,10 @@ def test_zero_shot_demo_0_is_finetuning_that_never_moves_the_goal(smoke_run, tmp
 def test_ot_probe_scores_goals_alike_for_alike_goals(smoke_run):
     """docs/ot_probe.py: J(g) is a mean OT reward (<= 0), the same for the same goal (every goal meets the same starts and
     imagination noise), and the script prints one line per cell and the summary."""
-    import importlib.util
     import subprocess
     import sys
 
-    path = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "docs", "ot_probe.py")
-    spec = importlib.util.spec_from_file_location("ot_probe", path)
-    probe = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(probe)
+    probe = docs_script("ot_probe")
     cfgs, models, _ = train.load_run(smoke_run)
     feat_dim = models["world_model"].feat_dim
     demo_p = torch.nn.functional.normalize(torch.randn(2, 20, models["goal_vae"].feat_dim), dim=-1)
@@ -213,7 +210,7 @@ def test_ot_probe_scores_goals_alike_for_alike_goals(smoke_run):
     J = probe.imagined_ot(models, cfgs, torch.stack([g, torch.randn(feat_dim), g]), demo_p, starts=6)
     assert J.shape == (3,) and (J <= 0).all() and J[0] == J[2] and J[0] != J[1]
     assert probe.spearman([1, 2, 3], [10, 20, 30]) == pytest.approx(1) and probe.spearman([1, 2, 3], [3, 2, 1]) == pytest.approx(-1)
-    out = subprocess.run([sys.executable, path, smoke_run, "--settings", "SE-SV", "--starts", "4"], capture_output=True, text=True)
+    out = subprocess.run([sys.executable, probe.__file__, smoke_run, "--settings", "SE-SV", "--starts", "4"], capture_output=True, text=True)
     assert out.returncode == 0, out.stderr[-2000:]
     lines = out.stdout.strip().splitlines()
     assert [l.split(" |")[0] for l in lines[1:-1]] == [f"SE-SV {t}" for t in ("stand", "walk", "run", "jump")]
