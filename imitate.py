@@ -12,9 +12,9 @@ GIIL-FT  from the first demo's zero-shot goal, g is optimised by L_GI (Eq. 5): i
          paragraph): stop-gradients keep g out of L_MG and psi out of L_GI. `seeds` seeds.
 
 Deviation (measured in docs/experiments.md, Phase 2): psi stays frozen by default (joint finetuning did not help over
-the shipped agents' whole SE-SV and SE-CV columns: walker -3.9 +- 2.7, stickman +1.8 +- 3.2, paired over 40 seeds each). Two variants of ours were measured equal to Eq. 5 as written on
-same-body cells and removed: g's gradient through the OT rewards of the lambda-returns too, and V_ot alone for the
-first 100 updates.
+the shipped agents' whole SE-SV and SE-CV columns: walker -3.9 +- 2.7, stickman +1.8 +- 3.2, paired over 40 seeds
+each). Two variants of ours were measured equal to Eq. 5 as written on same-body cells and removed: g's gradient
+through the OT rewards of the lambda-returns too, and V_ot alone for the first 100 updates.
 
 Choices where the paper is silent:
 * start states of the goal-inference imagination: demo features mapped into the latent space by the goal encoder
