@@ -1,10 +1,11 @@
 """The behaviour-cloning probe of docs/experiments.md (Phase 1): how far hindsight goal-conditioned behaviour cloning
 alone (policy.bc_loss, no Eq. 4) takes a fresh actor on the frozen world model and goal VAE of a trained run, scored
-by the goal-reaching benchmark (evaluate.goal_reaching, 1 episode per demo goal). It first prints what the data allow:
-the mean normalised score of D_body's expert episodes per task, and for each own side-view demo's last feature p_T
-the share of its 200 nearest D_body frames (cosine of p) that come from the same task. Run from the repository root:
+by the goal-reaching benchmark (evaluate.goal_reaching, --episodes per demo goal). It first prints what the data
+allow: the mean normalised score of D_body's expert episodes per task, and for each own side-view demo's last feature
+p_T the share of its 200 nearest D_body frames (cosine of p) that come from the same task. Run from the repository root:
 
-    python docs/bc_probe.py runs/walker_bc1_s0 --steps 20000 [--batches 1000] [--final-share 0.5] [--units 256 --layers 2] [--keep-actor] [--data DIR]
+    python docs/bc_probe.py runs/walker_bc1_s0 --steps 20000 [--batches 1000] [--final-share 0.5] [--units 256 --layers 2]
+        [--keep-actor] [--data DIR] [--episodes 3] [--seed N]
 """
 import argparse
 import dataclasses
@@ -41,15 +42,18 @@ if __name__ == "__main__":
     parser.add_argument("--units", type=int, default=None)
     parser.add_argument("--layers", type=int, default=None)
     parser.add_argument("--data", default=None, help="D_body and demos from this folder instead of the run's (same world model)")
+    parser.add_argument("--episodes", type=int, default=1, help="benchmark episodes per demo goal (the benchmark's own: 3)")
+    parser.add_argument("--seed", type=int, default=None, help="the cloning's seeds (fresh actor, batches; default: the run's)")
     parser.add_argument("--keep-actor", action="store_true", help="go on from the run's trained actor instead of a fresh one")
     args = parser.parse_args()
     torch.set_num_threads(1)
     torch.manual_seed(0)
     cfgs, models, _ = train.load_run(args.run)
-    cfgs["train"] = dataclasses.replace(cfgs["train"], data=args.data or cfgs["train"].data)
+    cfgs["train"] = dataclasses.replace(cfgs["train"], data=args.data or cfgs["train"].data,
+                                        seed=cfgs["train"].seed if args.seed is None else args.seed)
     what_the_data_allow(cfgs)
     _, data, _, _ = train.prepare_data(cfgs)
     ac = dataclasses.replace(cfgs["ac"], units=args.units or cfgs["ac"].units, actor_layers=args.layers or cfgs["ac"].actor_layers,
                              bc_polish=args.steps, bc_polish_fresh=int(not args.keep_actor), bc_polish_batches=args.batches, bc_final=args.final_share)
     train.polish(models, {**cfgs, "ac": ac}, data, "cpu")  # the cloning steps, as train.py's polish runs them
-    print("\n".join(evaluate.summary(evaluate.goal_reaching(models, cfgs, 1, 500))))
+    print("\n".join(evaluate.summary(evaluate.goal_reaching(models, cfgs, args.episodes, 500))))
