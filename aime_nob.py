@@ -196,6 +196,7 @@ def run_cell(run_dir, demo, view, nc, data=None):
 def main():
     args = genrl.cell_parser("Baseline AIME-NoB (AIME loss off): online imitation with an OT reward on video features, world model learning on.",
                              AIMENoBConfig, PRESETS).parse_args()
+    rundir.use_threads(args.threads)
     run_cell(args.run, args.demo, args.view, genrl.config_from_args(AIMENoBConfig, PRESETS, args), args.data)
 
 

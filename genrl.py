@@ -182,7 +182,6 @@ def load_cell(run_dir, demo, view, data=None):
     if data is not None:
         cfgs["train"] = dataclasses.replace(cfgs["train"], data=data)
     tc = cfgs["train"]
-    torch.set_num_threads(tc.threads)
     rundir.fast_matmul()  # oneDNN where it is faster and still fp32 (rundir.py)
     folder = imitate.demo_folder(cfgs, demo, view)
     demos = collect.load_folder(folder, ("p",))
@@ -254,6 +253,7 @@ def cell_parser(description, cls, presets):
     parser.add_argument("--view", default="side", choices=envs.VIEWS, help="camera of the demo")
     parser.add_argument("--run", default=train.default_run_dir("walker", "cpu"), help="the phase-1 run (train.py) whose world model is used")
     parser.add_argument("--data", default=None, help="data folder with demos/ and D_body (default: the run's)")
+    rundir.threads_flag(parser)
     add_config_flags(parser, cls, presets)
     return parser
 
@@ -261,6 +261,7 @@ def cell_parser(description, cls, presets):
 def main():
     args = cell_parser("Baseline GenRL: a task policy in the frozen world model's imagination, rewarded by latent similarity to a demo.",
                        GenRLConfig, PRESETS).parse_args()
+    rundir.use_threads(args.threads)
     run_cell(args.run, args.demo, args.view, config_from_args(GenRLConfig, PRESETS, args), args.data)
 
 

@@ -227,7 +227,6 @@ def imitate(run_dir, demo, view, finetune, ic, zero_shot=True, done=frozenset())
     device = "cuda" if torch.cuda.is_available() else "cpu"
     cfgs, models, ckpt = train.load_run(run_dir, device)
     tc = cfgs["train"]
-    torch.set_num_threads(tc.threads)
     rundir.fast_matmul()  # oneDNN where it is faster and still fp32 (rundir.py)
     folder = demo_folder(cfgs, demo, view)
     demo_body, task = demo.rsplit("_", 1)
@@ -303,12 +302,14 @@ def main():
     parser.add_argument("--table", action="store_true", help="all settings x tasks for this agent; keeps finished cells")
     parser.add_argument("--settings", default=",".join(envs.SETTINGS), help="with --table: the settings to run now, comma-separated")
     parser.add_argument("--shard", default="0/1", metavar="I/N", help="with --table: run only cells I, I + N, ... of those of --settings (N processes, one table)")
+    rundir.threads_flag(parser)
     parser.add_argument("--methods", default="giil", help="with --table: comma-separated, of giil (GIIL-ZS, GIIL-FT), genrl, aime-nob (the "
                         "baselines, genrl.py and aime_nob.py with their --preset); e.g. giil,genrl,aime-nob")
     for field in dataclasses.fields(ImitateConfig):
         parser.add_argument("--" + field.name.replace("_", "-"), type=type(field.default), default=None,
                             choices=CHOICES.get(field.name), help=f"default {field.default!r}, or the preset's")
     args = parser.parse_args()
+    rundir.use_threads(args.threads)
     given = {f.name: getattr(args, f.name) for f in dataclasses.fields(ImitateConfig) if getattr(args, f.name) is not None}
     ic = ImitateConfig(**{**PRESETS[given.get("preset", "cpu")], **given})
     if args.run and args.env:

@@ -9,6 +9,7 @@ trim_jsonl    on resume, metrics.jsonl keeps only the rows up to the checkpoint'
 read_jsonl    the rows of a .jsonl log; a last line cut short by a kill is dropped, any other bad line is an error
 append_jsonl  one row, on a line of its own after such a cut line
 fast_matmul   fp32 matmuls through oneDNN where that is faster and still fp32 (checked on this CPU)
+threads_flag  --threads of imitate.py, genrl.py and aime_nob.py: this process's torch threads, not the run's training ones
 export_agent  a trained run as a shipped agent, agents/<body>/checkpoint.pt: weights only (train.py --export)
 """
 import contextlib
@@ -154,6 +155,21 @@ def fast_matmul():
     if error > 1e-5:  # fp32 gives ~1e-6 here, bf16 ~1e-3
         matmul.fp32_precision = "none"
     return error <= 1e-5
+
+
+
+def threads_flag(parser):
+    """--threads: torch CPU threads of a phase-2 or baseline process, default 1. Not the phase-1 run's --threads: a run
+    trained alone with 2 put 2 threads in each of two table shards on two cores, and libgomp's spinning workers then
+    slowed GIIL-FT from 10 updates/s to one per 5 s (docs/experiments.md, Speed)."""
+    parser.add_argument("--threads", type=int, default=1, help="torch CPU threads (default 1; one per table shard)")
+
+
+def use_threads(threads):
+    """torch.set_num_threads(--threads), checked like every count."""
+    if threads < 1:
+        raise ValueError(f"--threads {threads}: must be >= 1")
+    torch.set_num_threads(threads)
 
 
 AGENTS = "agents"  # the shipped phase-1 agents: agents/<body>/checkpoint.pt, weights only (export_agent)
