@@ -157,11 +157,10 @@ def fast_matmul():
     return error <= 1e-5
 
 
-
 def threads_flag(parser):
     """--threads: torch CPU threads of a phase-2 or baseline process, default 1. Not the phase-1 run's --threads: a run
     trained alone with 2 put 2 threads in each of two table shards on two cores, and libgomp's spinning workers then
-    slowed GIIL-FT from 10 updates/s to one per 5 s (docs/experiments.md, Speed)."""
+    slowed GIIL-FT from ~9 updates/s to one per 5 s (docs/experiments.md, Speed)."""
     parser.add_argument("--threads", type=int, default=1, help="torch CPU threads (default 1; one per table shard)")
 
 

@@ -229,7 +229,6 @@ def test_every_preset_passes_the_checks_and_the_command_line_prints_one_line():
     assert out.returncode == 1 and out.stderr == "error: --eval-steps 0: must be >= 1\n"
 
 
-
 def test_phase_2_threads_are_the_command_lines_not_the_runs(smoke_run, tmp_path):
     """A run trained with --threads 2 must not put 2 threads in each table shard (rundir.threads_flag)."""
     run = copy_run(smoke_run, tmp_path)
@@ -246,6 +245,7 @@ def test_phase_2_threads_are_the_command_lines_not_the_runs(smoke_run, tmp_path)
         torch.set_num_threads(threads)
     out = subprocess.run([sys.executable, "imitate.py", "--table", "--run", run, "--threads", "0"], cwd=ROOT, capture_output=True, text=True)
     assert out.returncode == 1 and out.stderr == "error: --threads 0: must be >= 1\n"
+
 
 # --- 5. run directories: one writer, --resume needs a checkpoint, logs without duplicates or cut rows ---
 
