@@ -316,7 +316,7 @@ def pretrain(cfgs, run_dir, resume):
             if ac.bc:
                 with torch.no_grad():
                     final_goal = vae.goal(batch["p_last"])  # (B, F)
-                clone = lambda: policy.bc_loss(models["actor"], post_feat, goal_feat, batch["action"], final_goal, ac.bc_final)
+                clone = lambda: policy.bc_loss(models["actor"], post_feat, goal_feat, batch["action"], final_goal, ac.bc_final, weigh(models))
                 bc, bc_metrics = clone()
                 a_loss = a_loss + ac.bc * bc
                 m.update(bc_metrics)
@@ -352,6 +352,15 @@ def pretrain(cfgs, run_dir, resume):
     return run_dir
 
 
+def weigh(models):
+    """bc_loss's per-action weights: advantage-weighted cloning when --ac-bc-awr > 0 (policy.advantage_weights, with
+    the slow critic, the one Eq. 4's targets come from), else None (plain cloning)."""
+    ac = models["actor"].cfg
+    if not ac.bc_awr:
+        return None
+    return lambda feat, next_feat, goal: policy.advantage_weights(models["slow_critic"], models["dist_net"], feat, next_feat, goal, ac.gamma, ac.bc_awr)
+
+
 def polish(models, cfgs, data, device):
     """After the last update, ac.bc_polish steps of hindsight behaviour cloning (policy.bc_loss) of the actor alone on
     the frozen final world model and goal VAE (ours): during training the actor clones from posterior states that the
@@ -375,7 +384,7 @@ def polish(models, cfgs, data, device):
     with torch.random.fork_rng(devices=[]):
         torch.manual_seed(tc.seed + 2)
         for k in tqdm(range(ac.bc_polish), desc="polish the actor (behaviour cloning on the final world model)"):
-            loss, m = policy.bc_loss(actor, *cache[k % len(cache)], ac.bc_final)
+            loss, m = policy.bc_loss(actor, *cache[k % len(cache)], ac.bc_final, weigh(models))
             opt.zero_grad(set_to_none=True)
             loss.backward()
             torch.nn.utils.clip_grad_norm_(actor.parameters(), ac.grad_clip)
@@ -390,7 +399,7 @@ def main():
     parser.add_argument("--obs", dest="wm.obs", choices=("state", "pixels"), default=None, help="world-model input (default: the preset's)")
     parser.add_argument("--run-dir", default=None, help="default runs/<env>_<obs>_<preset>_s<seed>")
     parser.add_argument("--export", metavar="DIR", help="write the trained run (--run-dir) as a shipped agent DIR/checkpoint.pt "
-                        "(weights only, float16), then exit; e.g. agents/walker")
+                        "(weights only, float32), then exit; e.g. agents/walker")
     parser.add_argument("--upgrade-checkpoint", metavar="PATH", help="rewrite a checkpoint of the older pickled format so that it "
                         "loads weights-only (unpickles it once: only for a file you trust), then exit")
     add_config_flags(parser)
