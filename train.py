@@ -216,7 +216,9 @@ def make_optimizers(models, cfgs):
 def restore(ckpt_path, config, models, optims, encoder, device):
     """Load a checkpoint to resume from, after checking that it is the same run -> (update, numpy Generator)."""
     ckpt = collect.load_checkpoint(ckpt_path, device)
-    changed = [f"{n}.{k}" for n in config for k in config[n] if k not in RESUMABLE and ckpt["config"][n].get(k) != config[n][k]]
+    # a field the checkpoint lacks came after it was written: the run had its dataclass default (new flags default to the old behaviour)
+    saved = {n: {**dataclasses.asdict(COMPONENTS[n][0]()), **ckpt["config"][n]} for n in ckpt["config"]}
+    changed = [f"{n}.{k}" for n in config for k in config[n] if k not in RESUMABLE and saved[n].get(k) != config[n][k]]
     if changed:
         raise ValueError(f"{ckpt_path} was trained with other {', '.join(changed)}: pass the same flags to resume, or start a new run")
     if config["train"]["steps"] < ckpt["step"]:

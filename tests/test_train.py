@@ -48,6 +48,14 @@ def test_resume_continues_and_refuses_to_overwrite(smoke_run, smoke_data, tmp_pa
     other = train.resolve_configs(train_args(data=smoke_data, **{"wm.deter": 32}), "smoke")
     with pytest.raises(ValueError, match=r"other wm\.deter"):
         train.train(other, run, resume=True)
+    # a checkpoint written before a field existed resumes as that field's default, and only so
+    ckpt = torch.load(os.path.join(run, "checkpoint.pt"), weights_only=True)
+    del ckpt["config"]["ac"]["bc_awr"]
+    torch.save(ckpt, os.path.join(run, "checkpoint.pt"))
+    with pytest.raises(ValueError, match=r"other ac\.bc_awr"):
+        train.train(train.resolve_configs(train_args(data=smoke_data, steps=10, **{"ac.bc_awr": 1.0}), "smoke"), run, resume=True)
+    train.train(train.resolve_configs(train_args(data=smoke_data, steps=10), "smoke"), run, resume=True)
+    assert torch.load(os.path.join(run, "checkpoint.pt"), weights_only=True)["step"] == 10
 
 
 def test_nan_loss_stops_and_keeps_last_checkpoint(smoke_run, smoke_data, tmp_path, monkeypatch):
