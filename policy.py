@@ -54,7 +54,7 @@ class ActorCriticConfig:
     bc_polish: int = 0  # bc_loss steps of the actor alone on the frozen final world model and goal VAE, after the last update (ours; train.polish)
     bc_polish_fresh: int = 0  # 1: those steps train a freshly initialised actor instead of the trained one (ours; train.polish)
     bc_polish_batches: int = 250  # D_body batches whose posterior states the polish computes once and cycles (ours; train.polish)
-    bc_awr: float = 0.0  # beta of advantage-weighted cloning: bc_loss weighs each action by exp(beta * its standardised advantage) (ours; 0 = plain cloning; advantage_weights)
+    bc_awr: float = 0.0  # beta of advantage-weighted cloning: bc_loss weighs each action by exp(beta * its standardised advantage) (ours; 0 = plain cloning, kept: beta 1 lost 9.3 points on the stickman, docs/experiments.md)
 
 
 REWARDS = ("distance", "feature")  # the values of ActorCriticConfig.reward
