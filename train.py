@@ -293,6 +293,7 @@ def pretrain(cfgs, run_dir, resume):
     saved, log, t0, metrics = step, open(os.path.join(run_dir, "metrics.jsonl"), "a"), time.time(), {}
     wm, vae, dist_net = models["world_model"], models["goal_vae"], models["dist_net"]
     bar = tqdm(total=tc.steps, initial=step, desc=f"train {os.path.basename(run_dir)}")
+    weights = weigh(models, ac)
     while step < tc.steps:
         batch = data.sample(wc.batch, rng, device)
         loss, m, post = wm.loss(batch)  # Eq. 2
@@ -318,7 +319,7 @@ def pretrain(cfgs, run_dir, resume):
             if ac.bc:
                 with torch.no_grad():
                     final_goal = vae.goal(batch["p_last"])  # (B, F)
-                clone = lambda: policy.bc_loss(models["actor"], post_feat, goal_feat, batch["action"], final_goal, ac.bc_final, weigh(models))
+                clone = lambda: policy.bc_loss(models["actor"], post_feat, goal_feat, batch["action"], final_goal, ac.bc_final, weights)
                 bc, bc_metrics = clone()
                 a_loss = a_loss + ac.bc * bc
                 m.update(bc_metrics)
@@ -354,10 +355,9 @@ def pretrain(cfgs, run_dir, resume):
     return run_dir
 
 
-def weigh(models):
+def weigh(models, ac):
     """bc_loss's per-action weights: advantage-weighted cloning when --ac-bc-awr > 0 (policy.advantage_weights, with
     the slow critic, the one Eq. 4's targets come from), else None (plain cloning)."""
-    ac = models["actor"].cfg
     if not ac.bc_awr:
         return None
     return lambda feat, next_feat, goal: policy.advantage_weights(models["slow_critic"], models["dist_net"], feat, next_feat, goal, ac.gamma, ac.bc_awr)
@@ -383,10 +383,11 @@ def polish(models, cfgs, data, device):
             cache.append((wm.feat(post), vae.goal(b["p"]), b["action"], vae.goal(b["p_last"])))
     actor = models["actor"]
     opt = torch.optim.Adam(actor.parameters(), lr=ac.actor_lr)
+    weights = weigh(models, ac)
     with torch.random.fork_rng(devices=[]):
         torch.manual_seed(tc.seed + 2)
         for k in tqdm(range(ac.bc_polish), desc="polish the actor (behaviour cloning on the final world model)"):
-            loss, m = policy.bc_loss(actor, *cache[k % len(cache)], ac.bc_final, weigh(models))
+            loss, m = policy.bc_loss(actor, *cache[k % len(cache)], ac.bc_final, weights)
             opt.zero_grad(set_to_none=True)
             loss.backward()
             torch.nn.utils.clip_grad_norm_(actor.parameters(), ac.grad_clip)
