@@ -313,6 +313,17 @@ def bc_loss(actor, post_feat, goal_feat, action, final_goal=None, final_share=0.
     return loss, {"bc_loss": -log_prob.mean().item(), "bc_weight_max": weight.max().item()}
 
 
+def gradient_norms(module, **losses):
+    """{'grad_<name>': the L2 norm of d loss / d module's parameters} for each named loss, without touching .grad:
+    how much of the actor's update each term of its loss makes (train.py logs Eq. 4's against the cloning's)."""
+    params = [p for p in module.parameters() if p.requires_grad]
+    out = {}
+    for name, loss in losses.items():
+        grads = torch.autograd.grad(loss, params, retain_graph=True, allow_unused=True)
+        out["grad_" + name] = torch.sqrt(sum((g ** 2).sum() for g in grads if g is not None)).item()
+    return out
+
+
 def critic_loss(critic, feat, goal, returns):  # Eq. 4: V_eta trained with TD(lambda) targets
     """V(s_k, g) for k < H regressed to sg(G_k) (Dreamer V1: a unit Gaussian, 0.5 squared error):
     feat (N, H + 1, F), goal (N, G) or None, returns (N, H) -> (loss, metrics)."""

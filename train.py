@@ -321,6 +321,8 @@ def pretrain(cfgs, run_dir, resume):
                     final_goal = vae.goal(batch["p_last"])  # (B, F)
                 clone = lambda: policy.bc_loss(models["actor"], post_feat, goal_feat, batch["action"], final_goal, ac.bc_final, weights)
                 bc, bc_metrics = clone()
+                if logged:  # Eq. 4's share of the actor's step against the cloning's (docs/experiments.md)
+                    m.update(policy.gradient_norms(models["actor"], eq4=a_loss, bc=ac.bc * bc))
                 a_loss = a_loss + ac.bc * bc
                 m.update(bc_metrics)
             apply("actor", a_loss, "Eq. 4 actor loss")

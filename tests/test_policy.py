@@ -209,6 +209,24 @@ def test_bc_loss_is_tanh_gaussian_nll_of_dataset_actions():
     assert loss.item() == pytest.approx(-(logp_final(0).sum() + logp_final(1).sum()).item() / (2 * B), rel=1e-4)
 
 
+def test_gradient_norms_are_each_losss_own_and_leave_grad_untouched():
+    """gradient_norms: the L2 norm over all parameters of each loss's gradient, computed apart (the sum's is not the sum
+    of the norms), with .grad left as it was for the optimiser step that follows."""
+    lin = torch.nn.Linear(3, 2)
+    x = torch.randn(4, 3)
+    first, second = lin(x).sum(), (lin(x) ** 2).sum()
+    norms = P.gradient_norms(lin, first=first, second=second)
+    # d first / dW = 1 x (sum over rows of x) for each output, d first / db = (4, 4)
+    expected = torch.sqrt(2 * (x.sum(0) ** 2).sum() + 2 * 4.0**2)
+    assert norms["grad_first"] == pytest.approx(expected.item(), rel=1e-5)
+    y = lin(x).detach()
+    expected = torch.sqrt(((2 * y.T @ x) ** 2).sum() + ((2 * y.sum(0)) ** 2).sum())
+    assert norms["grad_second"] == pytest.approx(expected.item(), rel=1e-5)
+    assert lin.weight.grad is None and lin.bias.grad is None
+    (first + second).backward()  # the graphs were kept for the step itself
+    assert lin.weight.grad is not None
+
+
 def test_advantage_weights_favour_actions_that_bring_the_goal_nearer():
     """--ac-bc-awr: with V = 0 the advantage is -d(s_{t+1}, g), so of two actions from the same state the one whose next
     state is nearer the goal gets the larger weight; weights have mean 1, large ones are clipped at AWR_MAX (before the

@@ -164,7 +164,7 @@ def test_exported_agent_loads_weights_only_and_acts_like_its_run(smoke_run, tmp_
 
 def test_bc_steps_are_extra_actor_steps_and_the_feature_reward_trains(smoke_data, tmp_path):
     """--ac-bc-steps 3: each Eq. 4 update of the actor is followed by 2 steps on bc_loss alone (Adam counts 3 per update);
-    --ac-reward feature: the imagined reward is a cosine, in [-1, 1]."""
+    --ac-reward feature: the imagined reward is a cosine, in [-1, 1]; the log has the gradient norm of each term."""
     cfgs = train.resolve_configs(train_args(data=smoke_data, **{"ac.bc": 1.0, "ac.bc_steps": 3, "ac.reward": "feature"}), "smoke")
     run = train.train(cfgs, str(tmp_path / "bc_steps"), resume=False)
     ckpt = torch.load(os.path.join(run, "checkpoint.pt"), weights_only=True)
@@ -174,6 +174,7 @@ def test_bc_steps_are_extra_actor_steps_and_the_feature_reward_trains(smoke_data
     assert {int(s["step"]) for s in ckpt["optims"]["critic"]["state"].values()} == {tc.steps - tc.policy_start}
     last = [json.loads(l) for l in open(os.path.join(run, "metrics.jsonl"))][-1]
     assert -1 <= last["reward"] <= 1 and "bc_loss" in last
+    assert last["grad_eq4"] > 0 and last["grad_bc"] > 0  # each term's share of the actor's step, logged
 
 
 def test_polish_clones_on_the_final_models_and_leaves_training_untouched(smoke_data, tmp_path):
