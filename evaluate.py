@@ -244,14 +244,32 @@ def reachable_across_runs(run_dirs, last=5):
             f"{cell(end[:, 0] - end[:, 1])} | given g minus random, last: {cell(end[:, 0] - end[:, 2])} |"]
 
 
+def gradient_share(run_dirs, last=5):
+    """grad_eq4 and grad_bc of each run's metrics.jsonl (train.py logs them where cloning is on: the L2 norms of the
+    gradients on the actor's parameters of Eq. 4's actor loss and of the weighted cloning loss, policy.gradient_norms),
+    the mean of its last `last` rows, then mean +- s.e. over the runs; [] when no run logged them."""
+    norms = []
+    for run_dir in run_dirs:
+        rows = [json.loads(line) for line in open(os.path.join(run_dir, "metrics.jsonl"))]
+        rows = [(r["grad_eq4"], r["grad_bc"]) for r in rows if "grad_eq4" in r][-last:]
+        if rows:
+            norms.append(np.mean(rows, 0))
+    if not norms:
+        return []
+    norms = np.array(norms)
+    cell = lambda x, digits: f"{x.mean():.{digits}f} +- {stderr(x):.{digits}f}"
+    return [f"| actor's gradient norm, last {last} rows, {len(norms)} runs | Eq. 4 | cloning | cloning / Eq. 4 |", "|---|---|---|---|",
+            f"| mean +- s.e. | {cell(norms[:, 0], 3)} | {cell(norms[:, 1], 3)} | {cell(norms[:, 1] / norms[:, 0], 1)} |"]
+
+
 if __name__ == "__main__":
     import argparse
 
-    parser = argparse.ArgumentParser(description="Goal reaching of several phase-1 runs (e.g. training seeds), and their imagined goal "
-                                     "reward on reachable goals, mean +- s.e. over runs.")
+    parser = argparse.ArgumentParser(description="Goal reaching of several phase-1 runs (e.g. training seeds), their imagined goal "
+                                     "reward on reachable goals and the actor's gradient norms, mean +- s.e. over runs.")
     parser.add_argument("runs", nargs="+", help="run folders with goal_reaching.json (train.py writes it)")
     try:
         runs = parser.parse_args().runs
-        print("\n".join(across_runs(runs) + [""] + reachable_across_runs(runs)))
+        print("\n".join(across_runs(runs) + [""] + reachable_across_runs(runs) + [""] + gradient_share(runs)))
     except FileNotFoundError as error:
         raise SystemExit(f"error: {error}")

@@ -71,6 +71,23 @@ def test_reachable_reward_across_runs_by_hand(tmp_path):
     assert evaluate.reachable_across_runs([str(tmp_path / "old")]) == []
 
 
+def test_gradient_share_across_runs_by_hand(tmp_path):
+    """The last rows' mean grad_eq4 and grad_bc per run, then over runs; runs without them (no cloning) are left out."""
+    runs = []
+    for k, rows in enumerate([[(9.0, 9.0), (0.1, 2.0), (0.3, 4.0)], [(0.2, 1.0), (0.2, 3.0)], []]):
+        folder = tmp_path / f"r{k}"
+        folder.mkdir()
+        with open(folder / "metrics.jsonl", "w") as f:
+            f.write(json.dumps({"step": 100}) + "\n")
+            f.writelines(json.dumps({"grad_eq4": eq4, "grad_bc": bc}) + "\n" for eq4, bc in rows)
+        runs.append(str(folder))
+    table = evaluate.gradient_share(runs, last=2)
+    # run 0: 0.2 and 3.0 (ratio 15); run 1: 0.2 and 2.0 (ratio 10); run 2 logged none
+    assert table[0].startswith("| actor's gradient norm, last 2 rows, 2 runs |")
+    assert table[2] == "| mean +- s.e. | 0.200 +- 0.000 | 2.500 +- 0.500 | 12.5 +- 2.5 |"
+    assert evaluate.gradient_share(runs[2:]) == []
+
+
 def test_getting_up_row_classes_episodes_by_their_last_steps():
     """docs/getting_up.py: an episode is up when its mean posture over the last 100 steps is >= 0.8, whatever came before."""
     getting_up = docs_script("getting_up")
