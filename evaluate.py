@@ -32,10 +32,11 @@ BODY_TASKS = ("stand", "walk", "run")  # the tasks of D_body, whose average is t
 
 
 @torch.no_grad()
-def run_episodes(env_list, models, goals, steps, obs_key, seed, render=False, random_actions=False, on_step=None):
+def run_episodes(env_list, models, goals, steps, obs_key, seed, render=False, random_actions=False, on_step=None, on_state=None):
     """One episode in each env of env_list (reset with seeds seed, seed + 1, ...), acting with pi(a | s_t, g_i),
     deterministic (the tanh of the mean), or uniform random actions. goals (N, F), unused with random_actions.
-    on_step(env_list), if given, is called after every step (probes read the physics there).
+    on_step(env_list), if given, is called after every step (probes read the physics there); on_state(state), with the
+    posterior state dict of (N, .) of every step t = 0 .. steps (not with random_actions).
     -> returns (N,) float array, frames (N, steps + 1, 64, 64, 3) if render else None."""
     wm, actor = models["world_model"], models["actor"]
     device = next(wm.parameters()).device
@@ -52,6 +53,8 @@ def run_episodes(env_list, models, goals, steps, obs_key, seed, render=False, ra
             o = torch.as_tensor(frames[-1] if obs_key == "pixels" else obs, device=device)[:, None]
             post, _ = wm.observe(o, torch.as_tensor(action, device=device)[:, None], torch.full((N, 1), t == 0, device=device), state)
             state = {k: v[:, -1] for k, v in post.items()}
+            if on_state:
+                on_state(state)
         if t == steps:
             break
         if random_actions:

@@ -97,3 +97,28 @@ def test_getting_up_row_classes_episodes_by_their_last_steps():
     posture[-100:, 2] = [0.9] * 50 + [0.6] * 50  # mean 0.75: down
     line = getting_up.row("stand", posture, np.array([90.0, 10.0, 30.0]))
     assert line == f"| stand | {posture.mean():.2f} | 0.33 | 90.0 +- 0.0 (1) | 20.0 +- 10.0 (2) | 43.3 +- 24.0 (3) |"
+
+
+def test_imagination_gap_is_zero_when_reality_follows_imagination(smoke_run):
+    """docs/imagination_gap.py: read as real steps, the imagined states give the imagined reading (both -d(s_k, g) on
+    arrival, k = 1 .. H); run_episodes hands over one posterior state per step, t = 0 .. steps."""
+    import torch
+
+    import envs
+    import train
+
+    gap = docs_script("imagination_gap")
+    cfgs, models, ckpt = train.load_run(smoke_run)
+    wm, actor = models["world_model"], models["actor"]
+    with torch.no_grad():
+        goals = models["goal_vae"].goal(torch.randn(2, ckpt["p_dim"]))
+    states = []
+    evaluate.run_episodes([envs.make_env("walker", "walk") for _ in range(2)], models, goals, 6, "state", 0, on_state=states.append)
+    assert len(states) == 7 and states[3]["deter"].shape == (2, cfgs["wm"].deter)
+    imagined = gap.imagined_reward(models, states[3], goals, 4, seed=1)
+    torch.manual_seed(1)
+    with torch.no_grad():
+        path, _ = wm.imagine(states[3], lambda feat: actor(feat, goals, deterministic=True)[0], 4)
+        real = gap.real_reward(models["dist_net"], wm.feat(path), goals, 0, 4)
+        assert imagined.shape == (2,) and torch.allclose(imagined, real)
+        assert not torch.allclose(imagined, gap.real_reward(models["dist_net"], wm.feat(path), goals, 1, 3))  # indexing matters
