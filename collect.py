@@ -24,6 +24,7 @@ Features are a second pass over stored pixels (`--features`), so a new encoder n
 """
 import argparse
 import contextlib
+import glob
 import json
 import multiprocessing
 import os
@@ -173,14 +174,32 @@ def simulate(job):
     return [dict(common, pixels=np.array(frames[view]), view=view) for view in job["views"]]
 
 
+def alive(pid):
+    """Whether process `pid` still runs."""
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:  # another user's process
+        pass
+    return True
+
+
 def atomic_write(path, write):
     """Every file this project writes goes through here: write(f) fills a temporary file, which is then renamed onto
-    `path`, so a killed run leaves the old file or the new one, never half of one."""
+    `path`, so a killed run leaves the old file or the new one, never half of one. The temporary file is named after
+    the writer's pid, so two processes writing the same file (two runs side by side collecting one D_demo) each rename
+    a whole file of their own; a killed writer's leftover temporary file goes at the next write of `path`."""
     os.makedirs(os.path.dirname(path) or ".", exist_ok=True)
-    tmp = path + ".tmp"
+    tmp = f"{path}.{os.getpid()}.tmp"
     with open(tmp, "wb") as f:
         write(f)
     os.replace(tmp, path)
+    for left in glob.glob(glob.escape(path) + ".*.tmp"):
+        pid = left[len(path) + 1:-len(".tmp")]
+        if pid.isdigit() and not alive(int(pid)):
+            with contextlib.suppress(FileNotFoundError):
+                os.remove(left)
 
 
 def save_episode(path, episode):

@@ -165,9 +165,7 @@ def summary(scores):
 
 def write_goal_reaching(run_dir, scores):
     path = os.path.join(run_dir, "goal_reaching.json")
-    with open(path + ".tmp", "w") as f:
-        json.dump(scores, f)
-    os.replace(path + ".tmp", path)
+    collect.atomic_write(path, lambda f: f.write(json.dumps(scores).encode()))
     return path
 
 

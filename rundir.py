@@ -52,16 +52,6 @@ def check_flags(config, prefix=""):
             raise ValueError(f"--{prefix}{name.replace('_', '-')} {value}: must be {want}")
 
 
-def _alive(pid):
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return False
-    except PermissionError:  # another user's process
-        pass
-    return True
-
-
 @contextlib.contextmanager
 def lock(run_dir):
     """Hold run_dir/lock while the block runs; ValueError naming the other process if a live one holds it."""
@@ -77,7 +67,7 @@ def lock(run_dir):
                     holder = f.read().strip()
             except FileNotFoundError:  # released meanwhile: try again
                 continue
-            if holder.isdigit() and _alive(int(holder)):
+            if holder.isdigit() and collect.alive(int(holder)):
                 raise ValueError(f"{run_dir} is in use by process {holder} (its lock file {path}): wait for that run to end, "
                                  f"or train into another --run-dir; delete {path} only if no such process runs") from None
             with contextlib.suppress(FileNotFoundError):

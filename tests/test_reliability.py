@@ -33,7 +33,7 @@ def dying_write(path, write, original=collect.atomic_write):
     if path.endswith("checkpoint.pt"):
         saves.append(path)
         if len(saves) == 2:
-            with open(path + ".tmp", "wb") as f:
+            with open(f"{path}.{os.getpid()}.tmp", "wb") as f:
                 f.write(b"half a checkpoint")
             os.kill(os.getpid(), signal.SIGKILL)
     original(path, write)
@@ -73,10 +73,10 @@ def test_kill_then_resume_equals_an_uninterrupted_run(smoke_run, smoke_data, tmp
     killed = subprocess.run([sys.executable, "-c", KILLED_TRAIN] + flags, cwd=ROOT, capture_output=True, text=True)
     assert killed.returncode == -signal.SIGKILL, killed.stderr[-2000:]
     assert torch.load(os.path.join(run, "checkpoint.pt"), weights_only=True)["step"] == 3
-    assert os.path.exists(os.path.join(run, "lock")) and os.path.exists(os.path.join(run, "checkpoint.pt.tmp"))
+    assert os.path.exists(os.path.join(run, "lock")) and glob.glob(os.path.join(run, "checkpoint.pt.*.tmp"))
     resumed = subprocess.run([sys.executable, "train.py", "--resume"] + flags, cwd=ROOT, capture_output=True, text=True)
     assert resumed.returncode == 0, resumed.stderr[-2000:]
-    assert "resumed" in resumed.stdout and not os.path.exists(os.path.join(run, "lock")) and not os.path.exists(os.path.join(run, "checkpoint.pt.tmp"))
+    assert "resumed" in resumed.stdout and not os.path.exists(os.path.join(run, "lock")) and not glob.glob(os.path.join(run, "*.tmp"))
     a, b = (torch.load(os.path.join(r, "checkpoint.pt"), weights_only=True) for r in (run, smoke_run))
     assert a["step"] == b["step"] == 6 and a["rng"] == b["rng"] and torch.equal(a["torch_rng"], b["torch_rng"])
     for name in b["models"]:
@@ -152,6 +152,22 @@ def test_collection_into_another_presets_folder_is_refused(smoke_data, tmp_path)
         collect.collect_body("walker", longer, data, workers=1)
     assert snapshot(data) == before
     assert train.resolve_configs(train_args(), "smoke")["train"].data == collect.DATA["smoke"] != collect.DATA["cpu"]  # apart by default
+
+
+def test_two_processes_writing_one_file_each_write_a_whole_one(tmp_path):
+    # two runs side by side on one --data both collect its missing D_demo: another process writes the same episode
+    # while this one is half-way through it (one shared temporary file used to lose one writer's rename)
+    path, theirs = str(tmp_path / "01.npz"), b"theirs" * 1000
+    other = f"import collect; collect.atomic_write({path!r}, lambda f: f.write({theirs!r}))"
+
+    def write(f):
+        f.write(b"ours, first half ")
+        subprocess.run([sys.executable, "-c", other], cwd=ROOT, check=True)
+        assert open(path, "rb").read() == theirs
+        f.write(b"second half")
+
+    collect.atomic_write(path, write)
+    assert open(path, "rb").read() == b"ours, first half second half" and os.listdir(tmp_path) == ["01.npz"]
 
 
 # --- 3. divergence stops the run, names what was kept ---
