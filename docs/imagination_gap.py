@@ -58,8 +58,19 @@ def task_gap(models, cfgs, task, episodes=1):
     return torch.stack(imagined).mean(0).numpy(), torch.stack(real).mean(0).numpy()
 
 
-def rows(run_dir, episodes=1):
-    cfgs, models, _ = train.load_run(run_dir)
+def load(run_dir, unpolished=False):
+    """train.load_run's configs and models; with `unpolished`, the actor as training left it, before train.polish's
+    cloning steps (the checkpoint keeps it)."""
+    cfgs, models, ckpt = train.load_run(run_dir)
+    if unpolished:
+        if "actor_unpolished" not in ckpt:
+            raise ValueError(f"{run_dir}/checkpoint.pt keeps no unpolished actor: only a run trained with --ac-bc-polish has one (shipped agents do not)")
+        models["actor"].load_state_dict(ckpt["actor_unpolished"])
+    return cfgs, models
+
+
+def rows(run_dir, episodes=1, unpolished=False):
+    cfgs, models = load(run_dir, unpolished)
     cell = lambda x: f"{x.mean():.3f} +- {evaluate.stderr(x):.3f}"
     out, every = [], []
     for task in evaluate.BODY_TASKS:
@@ -75,9 +86,13 @@ if __name__ == "__main__":
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("runs", nargs="+", help="phase-1 run folders (or agents/<body>)")
     parser.add_argument("--episodes", type=int, default=1, help="episodes per demo goal")
+    parser.add_argument("--unpolished", action="store_true", help="the actor before the cloning polish after training (train.polish)")
     args = parser.parse_args()
     torch.set_num_threads(1)
     print(f"| run | task | imagined -d, {HORIZON} steps | real -d, the next {HORIZON} steps | imagined minus real |")
     print("|---|---|---|---|---|")
-    for run_dir in args.runs:
-        print("\n".join(rows(run_dir, args.episodes)), flush=True)
+    try:
+        for run_dir in args.runs:
+            print("\n".join(rows(run_dir, args.episodes, args.unpolished)), flush=True)
+    except (ValueError, FileNotFoundError) as error:
+        raise SystemExit(f"error: {error}")

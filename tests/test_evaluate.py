@@ -122,3 +122,18 @@ def test_imagination_gap_is_zero_when_reality_follows_imagination(smoke_run):
         real = gap.real_reward(models["dist_net"], wm.feat(path), goals, 0, 4)
         assert imagined.shape == (2,) and torch.allclose(imagined, real)
         assert not torch.allclose(imagined, gap.real_reward(models["dist_net"], wm.feat(path), goals, 1, 3))  # indexing matters
+
+
+def test_imagination_gap_reads_the_unpolished_actor_where_the_checkpoint_keeps_it(smoke_run, tmp_path):
+    """--unpolished loads the checkpoint's actor_unpolished in place of the polished actor, and says so where there is none."""
+    import torch
+
+    gap = docs_script("imagination_gap")
+    with pytest.raises(ValueError, match="keeps no unpolished actor: only a run trained with --ac-bc-polish"):
+        gap.load(smoke_run, unpolished=True)  # the smoke preset does not polish
+    ckpt = torch.load(os.path.join(smoke_run, "checkpoint.pt"), weights_only=True)
+    ckpt["actor_unpolished"] = {k: v + 1.0 for k, v in ckpt["models"]["actor"].items()}
+    torch.save(ckpt, tmp_path / "checkpoint.pt")
+    polished, unpolished = gap.load(str(tmp_path))[1]["actor"], gap.load(str(tmp_path), unpolished=True)[1]["actor"]
+    for name, value in unpolished.state_dict().items():
+        assert torch.equal(value, ckpt["actor_unpolished"][name]) and torch.equal(polished.state_dict()[name], ckpt["models"]["actor"][name])
