@@ -24,11 +24,9 @@ Features are a second pass over stored pixels (`--features`), so a new encoder n
 """
 import argparse
 import contextlib
-import glob
 import json
 import multiprocessing
 import os
-import pickle
 import zipfile
 from dataclasses import asdict, dataclass, replace
 
@@ -37,6 +35,7 @@ import torch
 from tqdm import tqdm
 
 import envs
+import rundir
 
 BODY_TASKS = ("stand", "walk", "run")  # the tasks whose experts' histories enter D_body; jump is held out
 KEYS = {"state": np.float32, "pixels": np.uint8, "action": np.float32, "reward": np.float32, "is_first": np.bool_, "p": np.float32}
@@ -174,78 +173,8 @@ def simulate(job):
     return [dict(common, pixels=np.array(frames[view]), view=view) for view in job["views"]]
 
 
-def alive(pid):
-    """Whether process `pid` still runs."""
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return False
-    except PermissionError:  # another user's process
-        pass
-    return True
-
-
-def atomic_write(path, write):
-    """Every file this project writes goes through here: write(f) fills a temporary file, which is then renamed onto
-    `path`, so a killed run leaves the old file or the new one, never half of one. The temporary file is named after
-    the writer's pid, so two processes writing the same file (two runs side by side collecting one D_demo) each rename
-    a whole file of their own; a killed writer's leftover temporary file goes at the next write of `path`."""
-    os.makedirs(os.path.dirname(path) or ".", exist_ok=True)
-    tmp = f"{path}.{os.getpid()}.tmp"
-    with open(tmp, "wb") as f:
-        write(f)
-    os.replace(tmp, path)
-    for left in glob.glob(glob.escape(path) + ".*.tmp"):
-        pid = left[len(path) + 1:-len(".tmp")]
-        if pid.isdigit() and not alive(int(pid)):
-            with contextlib.suppress(FileNotFoundError):
-                os.remove(left)
-
-
 def save_episode(path, episode):
-    atomic_write(path, lambda f: np.savez_compressed(f, **episode))
-
-
-def load_checkpoint(path, device="cpu"):
-    """A checkpoint read with torch.load(weights_only=True): tensors and plain Python values only, so loading a file
-    runs no code from it. One-line ValueError for a corrupt file or one written in the older pickled format."""
-    try:
-        return torch.load(path, map_location=device, weights_only=True)
-    except pickle.UnpicklingError:
-        raise ValueError(f"{path} holds pickled Python objects (the format before checkpoints became weights-only): convert it once "
-                         f"with `python train.py --upgrade-checkpoint {path}` (this unpickles it: only for a file you trust)") from None
-    except (RuntimeError, EOFError, OSError) as error:
-        raise ValueError(f"{path}: not a readable checkpoint ({str(error).splitlines()[0]}); delete it or restore it from a copy") from None
-
-
-def plain(obj):
-    """obj with numpy generators as their state dicts, arrays as tensors and numpy scalars as Python numbers: what
-    torch.load(weights_only=True) reads back."""
-    if isinstance(obj, dict):
-        return {k: plain(v) for k, v in obj.items()}
-    if isinstance(obj, (list, tuple)):
-        return type(obj)(plain(v) for v in obj)
-    if isinstance(obj, np.random.Generator):
-        return obj.bit_generator.state
-    if isinstance(obj, np.ndarray):
-        return torch.from_numpy(obj.copy())
-    return obj.item() if isinstance(obj, np.generic) else obj
-
-
-def generator(state):
-    """The numpy Generator of a checkpoint's plain `bit_generator.state` dict (plain)."""
-    rng = np.random.Generator(getattr(np.random, state["bit_generator"])())
-    rng.bit_generator.state = state
-    return rng
-
-
-def upgrade_checkpoint(path):
-    """Rewrite a checkpoint of the older pickled format (numpy generators and arrays inside) as plain(); its tensors are
-    kept exactly. Unpickles the file: only for a file you trust."""
-    old = torch.load(path, map_location="cpu", weights_only=False)
-    new = plain(old)
-    atomic_write(path, lambda f: torch.save(new, f))
-    return new
+    rundir.atomic_write(path, lambda f: np.savez_compressed(f, **episode))
 
 
 def load_episode(path, keys=tuple(KEYS)):
@@ -401,7 +330,7 @@ def collect_body(body, cfg, data="data", workers=2, encoder="default"):
     if os.path.exists(os.path.join(folder, COMPLETE)):  # not complete until this collection is
         os.remove(os.path.join(folder, COMPLETE))
     run_jobs(jobs, encoder, workers, f"D_body {body}")
-    atomic_write(os.path.join(folder, COMPLETE), lambda f: f.write(json.dumps(asdict(cfg)).encode()))
+    rundir.atomic_write(os.path.join(folder, COMPLETE), lambda f: f.write(json.dumps(asdict(cfg)).encode()))
     scores = {task: [] for task in BODY_TASKS}  # what cloning can reach: the task episodes' quality
     for paths, job in jobs:
         if job["kind"] in scores:

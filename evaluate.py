@@ -27,6 +27,7 @@ from tqdm import tqdm
 import collect
 import envs
 import policy
+import rundir
 
 BODY_TASKS = ("stand", "walk", "run")  # the tasks of D_body, whose average is the benchmark's number (jump held out)
 
@@ -165,7 +166,7 @@ def summary(scores):
 
 def write_goal_reaching(run_dir, scores):
     path = os.path.join(run_dir, "goal_reaching.json")
-    collect.atomic_write(path, lambda f: f.write(json.dumps(scores).encode()))
+    rundir.atomic_write(path, lambda f: f.write(json.dumps(scores).encode()))
     return path
 
 

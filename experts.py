@@ -68,7 +68,7 @@ def save_actor_member(actor, member, body, task, path, step, score=None):
     """Write one task's actor, float16, as a 1-member Actor state dict (with its --eval score if known)."""
     state = {k: v[member : member + 1].detach().half() for k, v in actor.state_dict().items()}
     meta = {"body": body, "task": task, "step": step, "hidden": actor.net[0].w.shape[2], "score": score}
-    collect.atomic_write(path, lambda f: torch.save({"actor": state, **meta}, f))
+    rundir.atomic_write(path, lambda f: torch.save({"actor": state, **meta}, f))
 
 
 def keep_best(actor, body, tasks, step, episodes):
@@ -80,11 +80,11 @@ def keep_best(actor, body, tasks, step, episodes):
     returns = np.mean([episode_returns(actor, env_list, 1000 + k) for k in range(episodes)], 0)
     for k, task in enumerate(tasks):
         score, final = float(envs.normalized_score(task, returns[k])), expert_path(body, task)
-        saved = collect.load_checkpoint(final) if os.path.exists(final) else {"score": -np.inf}
+        saved = rundir.load_checkpoint(final) if os.path.exists(final) else {"score": -np.inf}
         best = saved.get("score")
         if best is None:  # a final written before scores were stored: score it once, and store the score
             best = float(envs.normalized_score(task, evaluate(body, task, episodes).mean()))
-            collect.atomic_write(final, lambda f: torch.save({**saved, "score": best}, f))
+            rundir.atomic_write(final, lambda f: torch.save({**saved, "score": best}, f))
         if score > best:
             save_actor_member(actor, k, body, task, final, step, score)
 
@@ -104,7 +104,7 @@ def load_expert(body, task, step=None):
     path = expert_path(body, task, step)
     if not os.path.exists(path):
         raise FileNotFoundError(f"no expert weights at {path}: train them with `python experts.py --body {body} --tasks {task}`")
-    saved = collect.load_checkpoint(path)
+    saved = rundir.load_checkpoint(path)
     w0, w_last = saved["actor"]["net.0.w"], saved["actor"]["net.4.w"]
     actor = Actor(1, w0.shape[1], w_last.shape[2] // 2, saved["hidden"])
     actor.load_state_dict({k: v.float() for k, v in saved["actor"].items()})
@@ -182,7 +182,7 @@ def load_compact(body, tasks):
     for task in tasks:
         if not os.path.exists(compact_path(body, task)):
             raise FileNotFoundError(f"no compact state at {compact_path(body, task)}: leave {task} out of --tasks, or train it from scratch without --resume")
-        parts.append(collect.load_checkpoint(compact_path(body, task)))
+        parts.append(rundir.load_checkpoint(compact_path(body, task)))
     state = {"step": min(p["step"] for p in parts), "log_alpha": torch.stack([p["log_alpha"] for p in parts]),
              "actor": {k: torch.cat([p["actor"][k] for p in parts]) for k in parts[0]["actor"]}}
     for name in ("critic", "critic_target"):  # each file holds [Q1, Q2] of its task; the ensemble wants Q1s, then Q2s
@@ -224,7 +224,7 @@ def train(body, tasks, cfg, ckpt_dir, resume, warm_start=(), replace_committed=F
     step, learn_from = 0, cfg.seed_steps
     compact = resume and not os.path.exists(ckpt)  # allowed above only with replace_committed
     if resume:
-        state = load_compact(body, tasks) if compact else collect.load_checkpoint(ckpt)
+        state = load_compact(body, tasks) if compact else rundir.load_checkpoint(ckpt)
         if state["step"] > cfg.steps:
             raise ValueError(f"--steps {cfg.steps} is below step {state['step']} of the state resumed: pass --steps {state['step']} or more")
     if compact:
@@ -254,7 +254,7 @@ def train(body, tasks, cfg, ckpt_dir, resume, warm_start=(), replace_committed=F
         replay.size = state["replay_size"]
         for key in ("obs", "next_obs", "action", "reward"):
             getattr(replay, key)[:, : replay.size] = state["replay"][key].numpy()
-        step, rng = state["step"], collect.generator(state["rng"])
+        step, rng = state["step"], rundir.generator(state["rng"])
         torch.set_rng_state(state["torch_rng"])
         print(f"resumed {ckpt} at step {step}")
     if warm_start:
@@ -268,12 +268,12 @@ def train(body, tasks, cfg, ckpt_dir, resume, warm_start=(), replace_committed=F
             "replay": {k: torch.from_numpy(getattr(replay, k)[:, : replay.size].copy()) for k in ("obs", "next_obs", "action", "reward")},
             **{"optim_" + k: opt.state_dict() for k, opt in optims.items()},
         }
-        collect.atomic_write(ckpt, lambda f: torch.save(state, f))
+        rundir.atomic_write(ckpt, lambda f: torch.save(state, f))
         member = lambda module, rows: {key: v[rows].half() for key, v in module.state_dict().items()}
         for k, task in enumerate(tasks):
             compact = {"task": task, "step": step, "actor": member(actor, [k]), "critic": member(critic, [k, k + n]),
                        "critic_target": member(critic_target, [k, k + n]), "log_alpha": log_alpha.detach()[k].clone()}
-            collect.atomic_write(compact_path(body, task), lambda f: torch.save(compact, f))
+            rundir.atomic_write(compact_path(body, task), lambda f: torch.save(compact, f))
 
     os.makedirs(ckpt_dir, exist_ok=True)
     log_path = os.path.join(ckpt_dir, f"{body}_{'-'.join(tasks)}_log.csv")
@@ -348,7 +348,7 @@ def main():
             for task in args.tasks:
                 for step in tqdm(history_steps(body, task), desc=f"{body} {task} snapshots"):
                     keep_best(load_expert(body, task, step), body, [task], step, cfg.final_episodes)
-                saved = collect.load_checkpoint(expert_path(body, task))
+                saved = rundir.load_checkpoint(expert_path(body, task))
                 print(f"{body} {task}: final = step {saved['step']}, score {saved['score']:.1f}")
         return
     if args.eval and args.history:
@@ -364,7 +364,7 @@ def main():
         for body in bodies:
             for task in args.tasks:
                 returns = evaluate(body, task)
-                step = collect.load_checkpoint(expert_path(body, task))["step"]
+                step = rundir.load_checkpoint(expert_path(body, task))["step"]
                 jump = ""
                 if task == "jump":
                     airborne, takeoffs, peak, upright = jump_stats(body)

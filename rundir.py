@@ -11,18 +11,21 @@ append_jsonl  one row, on a line of its own after such a cut line
 fast_matmul   fp32 matmuls through oneDNN where that is faster and still fp32 (checked on this CPU)
 threads_flag  --threads of imitate.py, genrl.py and aime_nob.py: this process's torch threads, not the run's training ones
 export_agent  a trained run as a shipped agent, agents/<body>/checkpoint.pt: weights only (train.py --export)
+atomic_write  every file the project writes: a temporary file per writer, renamed onto the path (never half a file)
+load_checkpoint, plain, generator, upgrade_checkpoint   checkpoints that load with torch.load(weights_only=True)
 """
 import contextlib
 import dataclasses
 import fcntl
 import json
 import math
+import glob
 import os
+import pickle
 
+import numpy as np
 import torch
 
-import collect
-from collect import atomic_write
 
 # Ranges of the numeric flags that are not counts or sizes (those are >= 1): (low, high), None = no bound. Learning
 # rates lie in (0, 1), the fields of POSITIVE above 0, any other float is >= 0.
@@ -67,7 +70,7 @@ def lock(run_dir):
                     holder = f.read().strip()
             except FileNotFoundError:  # released meanwhile: try again
                 continue
-            if holder.isdigit() and collect.alive(int(holder)):
+            if holder.isdigit() and alive(int(holder)):
                 raise ValueError(f"{run_dir} is in use by process {holder} (its lock file {path}): wait for that run to end, "
                                  f"or train into another --run-dir; delete {path} only if no such process runs") from None
             with contextlib.suppress(FileNotFoundError):
@@ -164,12 +167,84 @@ def use_threads(threads):
 AGENTS = "agents"  # the shipped phase-1 agents: agents/<body>/checkpoint.pt, weights only (export_agent)
 
 
+def alive(pid):
+    """Whether process `pid` still runs."""
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:  # another user's process
+        pass
+    return True
+
+
+def atomic_write(path, write):
+    """Every file this project writes goes through here: write(f) fills a temporary file, which is then renamed onto
+    `path`, so a killed run leaves the old file or the new one, never half of one. The temporary file is named after
+    the writer's pid, so two processes writing the same file (two runs side by side collecting one D_demo) each rename
+    a whole file of their own; a killed writer's leftover temporary file goes at the next write of `path`."""
+    os.makedirs(os.path.dirname(path) or ".", exist_ok=True)
+    tmp = f"{path}.{os.getpid()}.tmp"
+    with open(tmp, "wb") as f:
+        write(f)
+    os.replace(tmp, path)
+    for left in glob.glob(glob.escape(path) + ".*.tmp"):
+        pid = left[len(path) + 1:-len(".tmp")]
+        if pid.isdigit() and not alive(int(pid)):
+            with contextlib.suppress(FileNotFoundError):
+                os.remove(left)
+
+
+def load_checkpoint(path, device="cpu"):
+    """A checkpoint read with torch.load(weights_only=True): tensors and plain Python values only, so loading a file
+    runs no code from it. One-line ValueError for a corrupt file or one written in the older pickled format."""
+    try:
+        return torch.load(path, map_location=device, weights_only=True)
+    except pickle.UnpicklingError:
+        raise ValueError(f"{path} holds pickled Python objects (the format before checkpoints became weights-only): convert it once "
+                         f"with `python train.py --upgrade-checkpoint {path}` (this unpickles it: only for a file you trust)") from None
+    except (RuntimeError, EOFError, OSError) as error:
+        raise ValueError(f"{path}: not a readable checkpoint ({str(error).splitlines()[0]}); delete it or restore it from a copy") from None
+
+
+def plain(obj):
+    """obj with numpy generators as their state dicts, arrays as tensors and numpy scalars as Python numbers: what
+    torch.load(weights_only=True) reads back."""
+    if isinstance(obj, dict):
+        return {k: plain(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return type(obj)(plain(v) for v in obj)
+    if isinstance(obj, np.random.Generator):
+        return obj.bit_generator.state
+    if isinstance(obj, np.ndarray):
+        return torch.from_numpy(obj.copy())
+    return obj.item() if isinstance(obj, np.generic) else obj
+
+
+def generator(state):
+    """The numpy Generator of a checkpoint's plain `bit_generator.state` dict (plain)."""
+    rng = np.random.Generator(getattr(np.random, state["bit_generator"])())
+    rng.bit_generator.state = state
+    return rng
+
+
+def upgrade_checkpoint(path):
+    """Rewrite a checkpoint of the older pickled format (numpy generators and arrays inside) as plain(); its tensors are
+    kept exactly. Unpickles the file: only for a file you trust."""
+    old = torch.load(path, map_location="cpu", weights_only=False)
+    new = plain(old)
+    atomic_write(path, lambda f: torch.save(new, f))
+    return new
+
+
 def export_agent(run_dir, out_dir):
     """A trained run as a shipped agent: its models' float32 weights, config and shapes; no optimiser state or RNG.
     Loadable by train.load_run like any run (float16 files of earlier exports are cast back to float32 on loading).
     float32, not float16 (ours): the walker exported in float16 scored 67.7 +- 3.3 on the benchmark against its run's
     72.5 +- 2.7, paired over the same 90 episodes -4.7 +- 2.0 (docs/experiments.md), and float32 fits in 7.5 MB."""
-    ckpt = collect.load_checkpoint(os.path.join(run_dir, "checkpoint.pt"))
+    import collect  # here, not at the top: collect imports this module
+
+    ckpt = load_checkpoint(os.path.join(run_dir, "checkpoint.pt"))
     agent = {k: ckpt[k] for k in ("config", "step", "encoder", "obs_shape", "action_dim", "p_dim")}
     # D_body is not shipped: the agent reads (and collects) demos in its preset's default data folder, wherever it was
     # trained; that folder is kept as trained_data

@@ -122,7 +122,7 @@ def table(run_dir, ic, settings=SETTINGS, demos_per_cell=10, shard=(0, 1), metho
     rows = load_results(run_dir)  # read once all cells ran: the rows other shards appended meanwhile count too
     text = markdown_tables(agent, [r for cell in shown for r in finished(rows, *cell)])
     path = os.path.join(run_dir, "tables.md")
-    collect.atomic_write(path, lambda f: f.write(text.encode()))
+    rundir.atomic_write(path, lambda f: f.write(text.encode()))
     print(text)
     print(f"wrote {path}")
 

@@ -130,7 +130,7 @@ def load_run(run_dir, device="cpu"):
     path = os.path.join(run_dir, "checkpoint.pt")
     if not os.path.exists(path):
         raise FileNotFoundError(f"no checkpoint at {path}: train one with `python train.py --env walker` (runs/<env>_<obs>_<preset>_s<seed>)")
-    ckpt = collect.load_checkpoint(path, device)
+    ckpt = rundir.load_checkpoint(path, device)
     cfgs = {name: COMPONENTS[name][0](**fields) for name, fields in ckpt["config"].items()}
     models = build_models(cfgs, ckpt["obs_shape"], ckpt["action_dim"], ckpt["p_dim"], device)
     for name, model in models.items():
@@ -215,7 +215,7 @@ def make_optimizers(models, cfgs):
 
 def restore(ckpt_path, config, models, optims, encoder, device):
     """Load a checkpoint to resume from, after checking that it is the same run -> (update, numpy Generator)."""
-    ckpt = collect.load_checkpoint(ckpt_path, device)
+    ckpt = rundir.load_checkpoint(ckpt_path, device)
     # a field the checkpoint lacks came after it was written: the run had its dataclass default (new flags default to the old behaviour)
     saved = {n: {**dataclasses.asdict(COMPONENTS[n][0]()), **ckpt["config"][n]} for n in ckpt["config"]}
     changed = [f"{n}.{k}" for n in config for k in config[n] if k not in RESUMABLE and saved[n].get(k) != config[n][k]]
@@ -231,14 +231,14 @@ def restore(ckpt_path, config, models, optims, encoder, device):
         opt.load_state_dict(ckpt["optims"][name])
     torch.set_rng_state(ckpt["torch_rng"].cpu())  # load_checkpoint maps every tensor to `device`; the CPU generator needs a CPU tensor
     print(f"resumed {ckpt_path} at update {ckpt['step']}")
-    return ckpt["step"], collect.generator(ckpt["rng"])
+    return ckpt["step"], rundir.generator(ckpt["rng"])
 
 
 def final_report(run_dir, models, cfgs, held_out, device):
     """After training: imagination on held-out D_body, the learning curve, the goal-reaching benchmark."""
     wc = cfgs["wm"]
     imagination = evaluate.evaluate_imagination(models, cfgs, held_out, device)
-    collect.atomic_write(os.path.join(run_dir, "imagination.json"), lambda f: f.write(json.dumps(imagination, indent=1).encode()))
+    rundir.atomic_write(os.path.join(run_dir, "imagination.json"), lambda f: f.write(json.dumps(imagination, indent=1).encode()))
     print(f"held-out D_body: goal decoder's cosine to the true p_t {imagination['posterior_p_cos']:.2f} on posterior states, "
           f"{imagination['open_loop_p_cos']:.2f} on {wc.seq_len - wc.seq_len // 2} open-loop imagined steps (world-model error {imagination['open_loop']:.3f})")
     print("wrote", evaluate.learning_curve(run_dir))
@@ -271,7 +271,7 @@ def pretrain(cfgs, run_dir, resume):
                  "models": {k: m.state_dict() for k, m in models.items()}, "optims": {k: o.state_dict() for k, o in optims.items()}}
         if actor_unpolished is not None:
             state["actor_unpolished"] = actor_unpolished
-        collect.atomic_write(ckpt_path, lambda f: torch.save(state, f))
+        rundir.atomic_write(ckpt_path, lambda f: torch.save(state, f))
         return step
 
     def apply(name, loss, term):
@@ -410,7 +410,7 @@ def main():
     add_config_flags(parser)
     args = parser.parse_args()
     if args.upgrade_checkpoint:
-        collect.upgrade_checkpoint(args.upgrade_checkpoint)
+        rundir.upgrade_checkpoint(args.upgrade_checkpoint)
         print(f"rewrote {args.upgrade_checkpoint}: it now loads with torch.load(weights_only=True)")
         return
     envs._check_name("body", getattr(args, "train.env") or TrainConfig.env, envs.BODIES)

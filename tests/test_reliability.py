@@ -27,9 +27,9 @@ SMOKE_IMITATE = imitate.ImitateConfig(**imitate.PRESETS["smoke"])
 # leaving a half-written temporary file, metrics rows past its checkpoint and its lock behind
 KILLED_TRAIN = """
 import os, runpy, signal, sys
-import collect
+import rundir
 saves = []
-def dying_write(path, write, original=collect.atomic_write):
+def dying_write(path, write, original=rundir.atomic_write):
     if path.endswith("checkpoint.pt"):
         saves.append(path)
         if len(saves) == 2:
@@ -37,7 +37,7 @@ def dying_write(path, write, original=collect.atomic_write):
                 f.write(b"half a checkpoint")
             os.kill(os.getpid(), signal.SIGKILL)
     original(path, write)
-collect.atomic_write = dying_write
+rundir.atomic_write = dying_write
 sys.argv = ["train.py"] + sys.argv[1:]
 runpy.run_path("train.py", run_name="__main__")
 """
@@ -158,7 +158,7 @@ def test_two_processes_writing_one_file_each_write_a_whole_one(tmp_path):
     # two runs side by side on one --data both collect its missing D_demo: another process writes the same episode
     # while this one is half-way through it (one shared temporary file used to lose one writer's rename)
     path, theirs = str(tmp_path / "01.npz"), b"theirs" * 1000
-    other = f"import collect; collect.atomic_write({path!r}, lambda f: f.write({theirs!r}))"
+    other = f"import rundir; rundir.atomic_write({path!r}, lambda f: f.write({theirs!r}))"
 
     def write(f):
         f.write(b"ours, first half ")
@@ -166,7 +166,7 @@ def test_two_processes_writing_one_file_each_write_a_whole_one(tmp_path):
         assert open(path, "rb").read() == theirs
         f.write(b"second half")
 
-    collect.atomic_write(path, write)
+    rundir.atomic_write(path, write)
     assert open(path, "rb").read() == b"ours, first half second half" and os.listdir(tmp_path) == ["01.npz"]
 
 
@@ -360,7 +360,7 @@ def test_older_pickled_checkpoint_is_named_then_upgraded(smoke_run, tmp_path):
     run = copy_run(smoke_run, tmp_path)
     path = os.path.join(run, "checkpoint.pt")
     new = torch.load(path, weights_only=True)
-    torch.save(dict(new, rng=collect.generator(new["rng"]), obs_shape=np.int64(new["obs_shape"])), path)  # the format before
+    torch.save(dict(new, rng=rundir.generator(new["rng"]), obs_shape=np.int64(new["obs_shape"])), path)  # the format before
     with pytest.raises(ValueError, match=r"checkpoint.pt holds pickled Python objects .*python train.py --upgrade-checkpoint .*checkpoint.pt"):
         train.load_run(run)
     out = subprocess.run([sys.executable, "train.py", "--upgrade-checkpoint", path], cwd=ROOT, capture_output=True, text=True)
