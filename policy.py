@@ -54,6 +54,7 @@ class ActorCriticConfig:
     bc_polish: int = 0  # bc_loss steps of the actor alone on the frozen final world model and goal VAE, after the last update (ours; train.polish)
     bc_polish_fresh: int = 0  # 1: those steps train a freshly initialised actor instead of the trained one (ours; train.polish)
     bc_polish_batches: int = 250  # D_body batches whose posterior states the polish computes once and cycles (ours; train.polish)
+    uncertainty: float = 0.0  # lambda of the penalty r^goal - lambda u on imagined steps, u the disagreement of an ensemble of next-observation predictors in units of its mean on D_body (ours, Disagreement; MOPO, Yu et al. 2020; 0 = off)
     bc_awr: float = 0.0  # beta of advantage-weighted cloning: bc_loss weighs each action by exp(beta * its standardised advantage) (ours; 0 = plain cloning, kept: beta 1 lost 9.3 points on the stickman, docs/experiments.md)
 
 
@@ -213,6 +214,57 @@ def sample_goals(post_feat, encoded_goal, start_index, is_first, mix, near, gene
     return torch.where(from_encoder, encoded_goal.flatten(0, 1)[index], post_feat.flatten(0, 1)[index]).detach()
 
 
+class Disagreement(nn.Module):
+    """The world model's uncertainty on an imagined step (ours, --ac-uncertainty; Plan2Explore's ensemble, Sekar et al.
+    2020, as MOPO's penalty, Yu et al. 2020): K MLPs, each predicting the next observation's target (the decoder's,
+    symlog(o_{t+1}), for states; the encoder's e_{t+1} for pixels) from [feat_t, a_t], trained on D_body's posterior
+    transitions. Where the data went they agree; off its support, where Eq. 4 alone learned actions whose outcome the
+    world model predicts wrongly (docs/experiments.md), they need not. u = the variance across members, averaged over
+    the target's dimensions, divided by its running mean on D_body's transitions (`scale`), so that lambda counts in
+    units of what the data shows."""
+
+    members = 5  # Plan2Explore's ensemble size
+    decay = 0.99  # EMA decay of scale
+
+    def __init__(self, feat_dim, action_dim, target_dim, units=128):
+        super().__init__()
+        sizes = [feat_dim + action_dim, units, units, target_dim]
+        self.w = nn.ParameterList()
+        self.b = nn.ParameterList()
+        for i, o in zip(sizes[:-1], sizes[1:]):  # nn.Linear's initialisation, per member
+            bound = 1 / math.sqrt(i)
+            self.w.append(nn.Parameter(torch.empty(self.members, i, o).uniform_(-bound, bound)))
+            self.b.append(nn.Parameter(torch.empty(self.members, 1, o).uniform_(-bound, bound)))
+        self.register_buffer("scale", torch.zeros(()))
+
+    def forward(self, feat, action):
+        """feat (..., F), action (..., A) -> each member's prediction (K, ..., target_dim)."""
+        x = torch.cat([feat, action], -1)
+        shape = x.shape[:-1]
+        x = x.reshape(1, -1, x.shape[-1]).expand(self.members, -1, -1)
+        for k, (w, b) in enumerate(zip(self.w, self.b)):
+            x = torch.baddbmm(b, x, w)
+            x = F.silu(x) if k < len(self.w) - 1 else x
+        return x.reshape(self.members, *shape, -1)
+
+    def disagreement(self, feat, action):
+        """u of each step: (..., F), (..., A) -> (...), in units of scale (1 before the first loss)."""
+        u = self(feat, action).var(0).mean(-1)
+        return u / self.scale if self.scale > 0 else u
+
+    def loss(self, post_feat, action, target, is_first):
+        """Squared error of every member on D_body's transitions s_t, a_t -> target_{t+1} (none across an episode
+        start): post_feat (B, T, F), action (B, T, A) = a_{t-1}, target (B, T, D), is_first (B, T); updates scale."""
+        keep = ~is_first[:, 1:]  # (B, T - 1)
+        pred = self(post_feat[:, :-1].detach(), action[:, 1:])  # (K, B, T - 1, D)
+        err = (pred - target[:, 1:].detach()).pow(2).sum(-1)  # (K, B, T - 1)
+        loss = err[:, keep].mean()
+        with torch.no_grad():
+            u = pred.var(0).mean(-1)[keep].mean()
+            self.scale.copy_(u if self.scale == 0 else self.scale.lerp(u, 1 - self.decay))
+        return loss, {"ensemble_loss": loss.item(), "disagreement_data": u.item()}
+
+
 def rollout(world_model, actor, start, goal, horizon):
     """Imagine `horizon` steps from start states (dict of (N, .), detached here) with pi(a | s, g)
     -> feat (N, H + 1, F) (index 0 = start), action (N, H, A), log_prob (N, H) of a_k at s_k."""
@@ -333,15 +385,19 @@ def critic_loss(critic, feat, goal, returns):  # Eq. 4: V_eta trained with TD(la
     return loss, {"critic_loss": loss.item(), "value": value.mean().item()}
 
 
-def policy_losses(world_model, dist_net, actor, critic, slow_critic, return_norm, start, goal, cfg, vae=None, other_reading=True):  # Eq. 4
+def policy_losses(world_model, dist_net, actor, critic, slow_critic, return_norm, start, goal, cfg, vae=None, other_reading=True, ensemble=None):  # Eq. 4
     """One update of L_MG (module docstring): start dict of (N, .), goal (N, F) -> actor loss, critic loss, metrics.
     vae: the goal VAE, read by cfg.reward 'feature'. other_reading: also log the reward not in use (with vae); train.py
-    asks for it only on the updates it logs (it cost a third of the update). Call ema_update(slow_critic, critic,
-    cfg.slow_critic_rate) after the critic's optimiser step."""
+    asks for it only on the updates it logs (it cost a third of the update). ensemble: the Disagreement whose u
+    cfg.uncertainty weighs as a penalty on the reward (ours). Call ema_update(slow_critic, critic, cfg.slow_critic_rate)
+    after the critic's optimiser step."""
     if cfg.reward not in REWARDS or (cfg.reward == "feature" and vae is None):
         raise ValueError(f"--ac-reward {cfg.reward!r}: pass 'distance' (Sec. 4) or 'feature' (with the goal VAE)")
-    with freeze(world_model, dist_net, slow_critic, *([vae] if vae is not None else [])):
-        feat, _, log_prob = rollout(world_model, actor, start, goal, cfg.horizon)
+    if cfg.uncertainty and ensemble is None:
+        raise ValueError(f"--ac-uncertainty {cfg.uncertainty}: the penalty needs the run's Disagreement ensemble")
+    frozen = [m for m in (vae, ensemble) if m is not None]
+    with freeze(world_model, dist_net, slow_critic, *frozen):
+        feat, action, log_prob = rollout(world_model, actor, start, goal, cfg.horizon)
         rewards = {"distance": lambda: goal_reward(dist_net, feat, goal), "feature": lambda: feature_reward(vae, feat, goal)}
         reward = rewards[cfg.reward]()  # (N, H)
         with torch.no_grad():  # both readings of the same imagined steps are logged, whichever one is the reward
@@ -349,8 +405,13 @@ def policy_losses(world_model, dist_net, actor, critic, slow_critic, return_norm
             if vae is not None and other_reading:
                 other = "feature" if cfg.reward == "distance" else "distance"
                 readings["reward_" + other] = rewards[other]().mean().item()
+        penalised = reward
+        if cfg.uncertainty:  # r_{k+1} - lambda u(s_k, a_k): the step into s_{k+1} is what the ensemble doubts
+            u = ensemble.disagreement(feat[:, :-1], action)  # (N, H), differentiable in the actions
+            readings["uncertainty"] = u.mean().item()
+            penalised = reward - cfg.uncertainty * u
         value = slow_critic(feat, goal)  # (N, H + 1): differentiable in feat, so -G reaches the actions
-        returns = lambda_return(reward, value, cfg.gamma, cfg.lambda_)  # (N, H)
+        returns = lambda_return(penalised, value, cfg.gamma, cfg.lambda_)  # (N, H)
     a_loss, a_metrics = actor_loss(returns, log_prob, return_norm, cfg.entropy)
     c_loss, c_metrics = critic_loss(critic, feat, goal, returns)
     return a_loss, c_loss, {**a_metrics, **c_metrics, "reward": reward.mean().item(), **readings}

@@ -69,7 +69,7 @@ RESUMABLE = {"steps", "log_every", "checkpoint_every", "eval_episodes", "eval_st
              "bc_polish", "bc_polish_fresh", "bc_polish_batches"}  # the polish starts from the training actor, kept apart in the checkpoint
 DIVERGED = 1e10  # |loss| above this is divergence (ours: the smoke preset's losses are below 100; a learning rate of 1e3 on
 # the goal VAE, distance or critic gave losses of 1e20 and more within 4 updates)
-LR_FLAGS = {"world_model": ("wm", "lr"), "goal_vae": ("goal", "lr"), "dist_net": ("dist", "lr"), "actor": ("ac", "actor_lr"), "critic": ("ac", "critic_lr")}
+LR_FLAGS = {"world_model": ("wm", "lr"), "ensemble": ("wm", "lr"), "goal_vae": ("goal", "lr"), "dist_net": ("dist", "lr"), "actor": ("ac", "actor_lr"), "critic": ("ac", "critic_lr")}
 
 
 def add_config_flags(parser):
@@ -122,6 +122,9 @@ def build_models(cfgs, obs_shape, action_dim, p_dim, device):
         "return_norm": policy.ReturnNorm(cfgs["ac"].return_norm_decay),
     }
     models["critic"], models["slow_critic"] = policy.make_critics(cfgs["ac"], wm.feat_dim, wm.feat_dim)
+    if cfgs["ac"].uncertainty:  # only then: runs and agents without it keep their set of models
+        target_dim = obs_shape if wm.cfg.obs == "state" else 32 * wm.cfg.cnn_depth  # symlog(o) or e (policy.Disagreement)
+        models["ensemble"] = policy.Disagreement(wm.feat_dim, action_dim, target_dim)
     return {k: m.to(device) for k, m in models.items()}
 
 
@@ -210,6 +213,8 @@ def make_optimizers(models, cfgs):
     wc, ac, gc, dc = cfgs["wm"], cfgs["ac"], cfgs["goal"], cfgs["dist"]
     lrs = {"world_model": wc.lr, "goal_vae": gc.lr, "dist_net": dc.lr, "actor": ac.actor_lr, "critic": ac.critic_lr}
     clip = {"world_model": wc.grad_clip, "goal_vae": gc.grad_clip, "dist_net": dc.grad_clip, "actor": ac.grad_clip, "critic": ac.grad_clip}
+    if "ensemble" in models:  # trained beside the world model, at its rate
+        lrs["ensemble"], clip["ensemble"] = wc.lr, wc.grad_clip
     return {name: torch.optim.Adam(models[name].parameters(), lr=lr) for name, lr in lrs.items()}, clip
 
 
@@ -303,6 +308,12 @@ def pretrain(cfgs, run_dir, resume):
         apply("goal_vae", loss, "Eq. 3 goal-VAE loss")
         metrics.update(m)
         post_feat = wm.feat(post).detach()  # (B, T, F)
+        if "ensemble" in models:  # policy.Disagreement, for --ac-uncertainty
+            with torch.no_grad():
+                target = wm._target(batch[wc.obs]) if wc.obs == "state" else wm.encode(batch[wc.obs])
+            loss, m = models["ensemble"].loss(post_feat, batch["action"], target, batch["is_first"])
+            apply("ensemble", loss, "the ensemble's loss")
+            metrics.update(m)
         with torch.no_grad():
             goal_feat = vae.goal(batch["p"])  # (B, T, F): the goal encoder's g of every frame, what GIIL-ZS feeds the policy
         pairs = distance.sample_pairs(batch["episode"], batch["is_first"], cfgs["dist"].pairs)
@@ -315,7 +326,7 @@ def pretrain(cfgs, run_dir, resume):
             goals = policy.sample_goals(post_feat, goal_feat, index, batch["is_first"], ac.goal_mix, ac.goal_near)
             logged = (step + 1) % tc.log_every == 0 or step + 1 == tc.steps  # the update whose metrics the log row keeps
             a_loss, c_loss, m = policy.policy_losses(wm, dist_net, models["actor"], models["critic"], models["slow_critic"], models["return_norm"],
-                                                     start, goals, ac, vae, other_reading=logged)
+                                                     start, goals, ac, vae, other_reading=logged, ensemble=models.get("ensemble"))
             if ac.bc:
                 with torch.no_grad():
                     final_goal = vae.goal(batch["p_last"])  # (B, F)

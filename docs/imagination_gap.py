@@ -5,9 +5,13 @@ same actor is imagined 15 steps towards g (Eq. 4's rollout), and Eq. 4's reward 
 twice: over the imagined states, and over the posterior states of the 15 real steps that followed. Per task and over
 all: imagined, real and imagined minus real, mean +- s.e. over episodes. An actor trained on imagination that the
 environment does not follow earns more imagined than real reward.
+With --uncertainty N, also the disagreement u of policy.Disagreement (--ac-uncertainty's penalty) on the same imagined
+steps, per episode, in units of its mean on D_body's transitions, and the rank correlation over episodes of u with
+the gap: does the ensemble see where the world model is wrong? The run's own ensemble where it has one, else one
+trained for N updates on the run's frozen world model and D_body.
 Run from the repository root:
 
-    python docs/imagination_gap.py runs/stickman_late_s0 runs/stickman_distrl_s0
+    python docs/imagination_gap.py runs/stickman_late_s0 runs/stickman_distrl_s0 [--uncertainty 2000]
 """
 import argparse
 import os
@@ -15,6 +19,7 @@ import sys
 
 import numpy as np
 import torch
+from tqdm import tqdm
 
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 import collect  # noqa: E402
@@ -43,8 +48,42 @@ def imagined_reward(models, start, goals, horizon, seed=0):
 
 
 @torch.no_grad()
-def task_gap(models, cfgs, task, episodes=1):
-    """(imagined, real) (N,) arrays for the demos of `task`, each the goal of `episodes` episodes, averaged over STARTS."""
+def imagined_uncertainty(models, ensemble, start, goals, horizon, seed=0):
+    """u of policy.Disagreement on the steps imagined_reward imagines (the same seed, the same path): each episode's
+    mean over s_k, a_k, k = 0 .. horizon - 1 (N,)."""
+    wm, actor = models["world_model"], models["actor"]
+    goal_in = actor.goal_input(goals)
+    torch.manual_seed(seed)
+    states, actions = wm.imagine(start, lambda feat: actor(feat, goals, deterministic=True, goal_in=goal_in)[0], horizon)
+    return ensemble.disagreement(wm.feat(states)[:, :-1], actions).mean(1)
+
+
+def train_ensemble(cfgs, models, updates, seed=0):
+    """A policy.Disagreement trained for `updates` updates on the run's frozen world model: its posterior states of
+    D_body batches, as train.py trains one beside the world model."""
+    wc, wm = cfgs["wm"], models["world_model"]
+    data = train.prepare_data(cfgs)[1]
+    target_dim = data.data[wc.obs].shape[-1] if wc.obs == "state" else 32 * wc.cnn_depth
+    ensemble = policy.Disagreement(wm.feat_dim, wm.action_dim, target_dim)
+    opt, rng = torch.optim.Adam(ensemble.parameters(), lr=wc.lr), np.random.default_rng(seed)
+    torch.manual_seed(seed)
+    for _ in tqdm(range(updates), desc="train the ensemble"):
+        batch = data.sample(wc.batch, rng, "cpu")
+        with torch.no_grad():
+            post, _ = wm.observe(batch[wc.obs], batch["action"], batch["is_first"])
+            target = wm._target(batch[wc.obs]) if wc.obs == "state" else wm.encode(batch[wc.obs])
+        loss, _ = ensemble.loss(wm.feat(post), batch["action"], target, batch["is_first"])
+        opt.zero_grad(set_to_none=True)
+        loss.backward()
+        torch.nn.utils.clip_grad_norm_(ensemble.parameters(), wc.grad_clip)
+        opt.step()
+    return ensemble
+
+
+@torch.no_grad()
+def task_gap(models, cfgs, task, episodes=1, ensemble=None):
+    """(imagined, real, u) (N,) arrays for the demos of `task`, each the goal of `episodes` episodes, averaged over
+    STARTS; u None without an ensemble."""
     body = cfgs["train"].env
     demos = collect.load_folder(os.path.join(cfgs["train"].data, "demos", f"{body}_{task}_side"), ("p",))
     goals = models["goal_vae"].goal(torch.as_tensor(np.stack([d["p"][-1] for d in demos]))).repeat_interleave(episodes, 0)
@@ -53,9 +92,11 @@ def task_gap(models, cfgs, task, episodes=1):
     evaluate.run_episodes(env_list, models, goals, STARTS[-1] + HORIZON, cfgs["wm"].obs, 30_000, on_state=states.append)
     post = {k: torch.stack([s[k] for s in states], 1) for k in states[0]}  # (N, T, .), t = 0 .. 115
     feats = models["world_model"].feat(post)
-    imagined = [imagined_reward(models, {k: v[:, t0] for k, v in post.items()}, goals, HORIZON) for t0 in STARTS]
+    starts = [{k: v[:, t0] for k, v in post.items()} for t0 in STARTS]
+    imagined = [imagined_reward(models, start, goals, HORIZON) for start in starts]
     real = [real_reward(models["dist_net"], feats, goals, t0, HORIZON) for t0 in STARTS]
-    return torch.stack(imagined).mean(0).numpy(), torch.stack(real).mean(0).numpy()
+    u = None if ensemble is None else torch.stack([imagined_uncertainty(models, ensemble, start, goals, HORIZON) for start in starts]).mean(0).numpy()
+    return torch.stack(imagined).mean(0).numpy(), torch.stack(real).mean(0).numpy(), u
 
 
 def load(run_dir, unpolished=False):
@@ -69,16 +110,27 @@ def load(run_dir, unpolished=False):
     return cfgs, models
 
 
-def rows(run_dir, episodes=1, unpolished=False):
+def rank_correlation(x, y):
+    """Spearman's rho of two (N,) arrays without ties: Pearson's correlation of their ranks."""
+    return float(np.corrcoef(np.argsort(np.argsort(x)), np.argsort(np.argsort(y)))[0, 1])
+
+
+def rows(run_dir, episodes=1, unpolished=False, uncertainty=0):
     cfgs, models = load(run_dir, unpolished)
+    ensemble = None
+    if uncertainty:
+        ensemble = models["ensemble"] if "ensemble" in models else train_ensemble(cfgs, models, uncertainty)
     cell = lambda x: f"{x.mean():.3f} +- {evaluate.stderr(x):.3f}"
     out, every = [], []
     for task in evaluate.BODY_TASKS:
-        imagined, real = task_gap(models, cfgs, task, episodes)
-        every.append((imagined, real))
-        out.append(f"| {run_dir} | {task} | {cell(imagined)} | {cell(real)} | {cell(imagined - real)} |")
-    imagined, real = (np.concatenate(x) for x in zip(*every))
+        every.append(task_gap(models, cfgs, task, episodes, ensemble))
+        imagined, real, u = every[-1]
+        out.append(f"| {run_dir} | {task} | {cell(imagined)} | {cell(real)} | {cell(imagined - real)} |" + (f" {cell(u)} |" if ensemble else ""))
+    imagined, real = np.concatenate([e[0] for e in every]), np.concatenate([e[1] for e in every])
     out.append(f"| {run_dir} | **all** | {cell(imagined)} | {cell(real)} | **{cell(imagined - real)}** |")
+    if ensemble:
+        u = np.concatenate([e[2] for e in every])
+        out[-1] += f" **{cell(u)}**, rank correlation with the gap {rank_correlation(u, imagined - real):.2f} |"
     return out
 
 
@@ -87,12 +139,14 @@ if __name__ == "__main__":
     parser.add_argument("runs", nargs="+", help="phase-1 run folders (or agents/<body>)")
     parser.add_argument("--episodes", type=int, default=1, help="episodes per demo goal")
     parser.add_argument("--unpolished", action="store_true", help="the actor before the cloning polish after training (train.polish)")
+    parser.add_argument("--uncertainty", type=int, default=0, metavar="N", help="also the ensemble's disagreement u (the run's, "
+                        "else one trained for N updates on its frozen world model)")
     args = parser.parse_args()
     torch.set_num_threads(1)
-    print(f"| run | task | imagined -d, {HORIZON} steps | real -d, the next {HORIZON} steps | imagined minus real |")
-    print("|---|---|---|---|---|")
+    print(f"| run | task | imagined -d, {HORIZON} steps | real -d, the next {HORIZON} steps | imagined minus real |" + (" u |" if args.uncertainty else ""))
+    print("|---|---|---|---|---|" + ("---|" if args.uncertainty else ""))
     try:
         for run_dir in args.runs:
-            print("\n".join(rows(run_dir, args.episodes, args.unpolished)), flush=True)
+            print("\n".join(rows(run_dir, args.episodes, args.unpolished, args.uncertainty)), flush=True)
     except (ValueError, FileNotFoundError) as error:
         raise SystemExit(f"error: {error}")

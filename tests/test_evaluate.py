@@ -137,3 +137,29 @@ def test_imagination_gap_reads_the_unpolished_actor_where_the_checkpoint_keeps_i
     polished, unpolished = gap.load(str(tmp_path))[1]["actor"], gap.load(str(tmp_path), unpolished=True)[1]["actor"]
     for name, value in unpolished.state_dict().items():
         assert torch.equal(value, ckpt["actor_unpolished"][name]) and torch.equal(polished.state_dict()[name], ckpt["models"]["actor"][name])
+
+
+def test_imagination_gap_scores_the_ensembles_disagreement_on_the_imagined_path(smoke_run):
+    """--uncertainty: an ensemble trained on the run's frozen world model (scale set from D_body), u read on the very
+    path imagined_reward imagines (same seed), and the rank correlation of u with the gap."""
+    import torch
+
+    import envs
+    import train
+
+    gap = docs_script("imagination_gap")
+    cfgs, models, ckpt = train.load_run(smoke_run)
+    before = {k: v.clone() for k, v in models["world_model"].state_dict().items()}
+    ensemble = gap.train_ensemble(cfgs, models, 3)
+    assert ensemble.scale > 0 and all(torch.equal(v, before[k]) for k, v in models["world_model"].state_dict().items())
+    with torch.no_grad():
+        goals = models["goal_vae"].goal(torch.randn(2, ckpt["p_dim"]))
+    states = []
+    evaluate.run_episodes([envs.make_env("walker", "walk") for _ in range(2)], models, goals, 4, "state", 0, on_state=states.append)
+    u = gap.imagined_uncertainty(models, ensemble, states[2], goals, 3, seed=1)
+    torch.manual_seed(1)
+    with torch.no_grad():
+        path, actions = models["world_model"].imagine(states[2], lambda feat: models["actor"](feat, goals, deterministic=True)[0], 3)
+        assert u.shape == (2,) and torch.allclose(u, ensemble.disagreement(models["world_model"].feat(path)[:, :-1], actions).mean(1))
+    assert gap.rank_correlation(np.array([1.0, 2.0, 3.0]), np.array([0.3, 0.2, 0.1])) == pytest.approx(-1)
+    assert gap.rank_correlation(np.array([1.0, 2.0, 3.0, 4.0]), np.array([1.0, 3.0, 2.0, 4.0])) == pytest.approx(0.8)

@@ -306,6 +306,56 @@ def test_eq4_updates_on_a_toy_world_raise_the_goal_reward_beyond_what_ignoring_t
     assert first > -1.3 and reward > -0.6, (first, reward)  # ignoring g: -1 at best
 
 
+def test_disagreement_is_small_where_the_data_went_and_large_off_it():
+    """Trained on transitions whose inputs lie in one small region, the members agree there (u about 1 in units of the
+    data's running mean, below it while the error still falls: the mean lags) and disagree far from it."""
+    torch.manual_seed(0)
+    ensemble = P.Disagreement(feat_dim=6, action_dim=2, target_dim=3, units=32)
+    opt = torch.optim.Adam(ensemble.parameters(), lr=3e-3)
+    mix = torch.randn(8, 3)
+    for _ in range(300):
+        feat, action = 0.3 * torch.randn(8, 10, 6), (0.3 * torch.randn(8, 10, 2)).tanh()
+        # target[:, t + 1] follows from s_t and a_t = action[:, t + 1]
+        target = torch.cat([torch.zeros(8, 1, 3), torch.cat([feat[:, :-1], action[:, 1:]], -1) @ mix], 1)
+        loss, metrics = ensemble.loss(feat, action, target, torch.zeros(8, 10, dtype=torch.bool))
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+    assert metrics["ensemble_loss"] < 0.05 * (mix**2).sum() and ensemble.scale > 0
+    with torch.no_grad():
+        near = ensemble.disagreement(0.3 * torch.randn(500, 6), (0.3 * torch.randn(500, 2)).tanh()).mean()
+        far = ensemble.disagreement(0.3 * torch.randn(500, 6) + 4.0, torch.ones(500, 2)).mean()
+    assert 0.05 < near < 2 and far > 20 * near, (near, far)
+
+
+def test_uncertainty_penalty_lowers_the_returns_by_the_lambda_return_of_minus_lambda_u():
+    """The same imagined rollout (same seed) with and without the penalty: Eq. 4's returns differ by exactly the
+    TD(lambda) return of -lambda u with zero values (lambda_return is linear), the goal reward logged is the same,
+    and the ensemble, like the world model, gets no gradient; without an ensemble the flag is refused."""
+    cfg, world_model, dist_net, actor, critic, slow_critic = make_agents()
+    batch = W.random_batch("state", 5, 2, 4, 6)
+    _, _, post = world_model.loss(batch)
+    start, _ = P.sample_starts(post, 16, torch.Generator().manual_seed(0))
+    goal = world_model.feat(post).flatten(0, 1)[:16].detach()
+    ensemble = P.Disagreement(world_model.feat_dim, 2, 5, units=8)
+    out = {}
+    for lam in (0.0, 0.5):
+        torch.manual_seed(1)
+        cfg.uncertainty = lam
+        out[lam] = P.policy_losses(world_model, dist_net, actor, critic, slow_critic, P.ReturnNorm(0.99), start, goal, cfg, ensemble=ensemble)
+    torch.manual_seed(1)
+    feat, action, _ = P.rollout(world_model, actor, start, goal, cfg.horizon)
+    with torch.no_grad():
+        u = ensemble.disagreement(feat[:, :-1], action)
+    shift = P.lambda_return(-0.5 * u, torch.zeros(16, cfg.horizon + 1), cfg.gamma, cfg.lambda_).mean().item()
+    assert out[0.5][2]["reward"] == out[0.0][2]["reward"] and out[0.5][2]["uncertainty"] == pytest.approx(u.mean().item(), rel=1e-5)
+    assert out[0.5][2]["return"] - out[0.0][2]["return"] == pytest.approx(shift, rel=1e-4) and shift < 0
+    out[0.5][0].backward()
+    assert all(p.grad is None for p in ensemble.parameters()) and all(p.requires_grad for p in ensemble.parameters())
+    with pytest.raises(ValueError, match="needs the run's Disagreement ensemble"):
+        P.policy_losses(world_model, dist_net, actor, critic, slow_critic, P.ReturnNorm(0.99), start, goal, cfg)
+
+
 def test_critic_with_the_goal_share_computed_once_equals_the_mlp_on_feat_and_goal():
     torch.manual_seed(0)
     cfg = P.ActorCriticConfig(**P.PRESETS["smoke"])

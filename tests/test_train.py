@@ -177,6 +177,20 @@ def test_bc_steps_are_extra_actor_steps_and_the_feature_reward_trains(smoke_data
     assert last["grad_eq4"] > 0 and last["grad_bc"] > 0  # each term's share of the actor's step, logged
 
 
+def test_uncertainty_penalty_trains_its_ensemble_and_resumes(smoke_run, smoke_data, tmp_path):
+    """--ac-uncertainty: the run keeps a policy.Disagreement trained every update (Adam counts one step per update),
+    logs the penalty's u, and resumes with it; runs without the flag have no ensemble."""
+    cfgs = train.resolve_configs(train_args(data=smoke_data, **{"ac.uncertainty": 0.1}), "smoke")
+    run = train.train(cfgs, str(tmp_path / "unc"), resume=False)
+    ckpt = torch.load(os.path.join(run, "checkpoint.pt"), weights_only=True)
+    assert {int(s["step"]) for s in ckpt["optims"]["ensemble"]["state"].values()} == {cfgs["train"].steps}
+    last = [json.loads(l) for l in open(os.path.join(run, "metrics.jsonl"))][-1]
+    assert last["uncertainty"] > 0 and last["disagreement_data"] > 0 and ckpt["models"]["ensemble"]["scale"] > 0
+    train.train(train.resolve_configs(train_args(data=smoke_data, steps=8, **{"ac.uncertainty": 0.1}), "smoke"), run, resume=True)
+    assert torch.load(os.path.join(run, "checkpoint.pt"), weights_only=True)["step"] == 8
+    assert "ensemble" not in train.load_run(smoke_run)[1]
+
+
 def test_polish_clones_on_the_final_models_and_leaves_training_untouched(smoke_data, tmp_path):
     """--ac-bc-polish N: after the last update, N cloning steps of the actor alone. The checkpoint's actor is the polished
     one; the world model, the training actor (kept as actor_unpolished) and the RNG are those of the same run without
