@@ -237,6 +237,17 @@ class Disagreement(nn.Module):
             self.b.append(nn.Parameter(torch.empty(self.members, 1, o).uniform_(-bound, bound)))
         self.register_buffer("scale", torch.zeros(()))
 
+    @classmethod
+    def of(cls, wm):
+        """The ensemble for a world model: its feat and action sizes, and the target's."""
+        return cls(wm.feat_dim, wm.action_dim, wm.obs_shape[0] if wm.cfg.obs == "state" else 32 * wm.cfg.cnn_depth)
+
+    @staticmethod
+    def target(wm, obs):
+        """What the members predict of o_t: symlog(o_t) for states, the encoder's e_t for pixels: (B, T, .) -> (B, T, D)."""
+        with torch.no_grad():
+            return wm._target(obs) if wm.cfg.obs == "state" else wm.encode(obs)
+
     def forward(self, feat, action):
         """feat (..., F), action (..., A) -> each member's prediction (K, ..., target_dim)."""
         x = torch.cat([feat, action], -1)

@@ -123,8 +123,7 @@ def build_models(cfgs, obs_shape, action_dim, p_dim, device):
     }
     models["critic"], models["slow_critic"] = policy.make_critics(cfgs["ac"], wm.feat_dim, wm.feat_dim)
     if cfgs["ac"].uncertainty:  # only then: runs and agents without it keep their set of models
-        target_dim = obs_shape if wm.cfg.obs == "state" else 32 * wm.cfg.cnn_depth  # symlog(o) or e (policy.Disagreement)
-        models["ensemble"] = policy.Disagreement(wm.feat_dim, action_dim, target_dim)
+        models["ensemble"] = policy.Disagreement.of(wm)
     return {k: m.to(device) for k, m in models.items()}
 
 
@@ -309,8 +308,7 @@ def pretrain(cfgs, run_dir, resume):
         metrics.update(m)
         post_feat = wm.feat(post).detach()  # (B, T, F)
         if "ensemble" in models:  # policy.Disagreement, for --ac-uncertainty
-            with torch.no_grad():
-                target = wm._target(batch[wc.obs]) if wc.obs == "state" else wm.encode(batch[wc.obs])
+            target = policy.Disagreement.target(wm, batch[wc.obs])
             loss, m = models["ensemble"].loss(post_feat, batch["action"], target, batch["is_first"])
             apply("ensemble", loss, "the ensemble's loss")
             metrics.update(m)

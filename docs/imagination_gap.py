@@ -63,16 +63,14 @@ def train_ensemble(cfgs, models, updates, seed=0):
     D_body batches, as train.py trains one beside the world model."""
     wc, wm = cfgs["wm"], models["world_model"]
     data = train.prepare_data(cfgs)[1]
-    target_dim = data.data[wc.obs].shape[-1] if wc.obs == "state" else 32 * wc.cnn_depth
-    ensemble = policy.Disagreement(wm.feat_dim, wm.action_dim, target_dim)
+    ensemble = policy.Disagreement.of(wm)
     opt, rng = torch.optim.Adam(ensemble.parameters(), lr=wc.lr), np.random.default_rng(seed)
     torch.manual_seed(seed)
     for _ in tqdm(range(updates), desc="train the ensemble"):
         batch = data.sample(wc.batch, rng, "cpu")
         with torch.no_grad():
             post, _ = wm.observe(batch[wc.obs], batch["action"], batch["is_first"])
-            target = wm._target(batch[wc.obs]) if wc.obs == "state" else wm.encode(batch[wc.obs])
-        loss, _ = ensemble.loss(wm.feat(post), batch["action"], target, batch["is_first"])
+        loss, _ = ensemble.loss(wm.feat(post), batch["action"], policy.Disagreement.target(wm, batch[wc.obs]), batch["is_first"])
         opt.zero_grad(set_to_none=True)
         loss.backward()
         torch.nn.utils.clip_grad_norm_(ensemble.parameters(), wc.grad_clip)
@@ -125,10 +123,10 @@ def rows(run_dir, episodes=1, unpolished=False, uncertainty=0):
     for task in evaluate.BODY_TASKS:
         every.append(task_gap(models, cfgs, task, episodes, ensemble))
         imagined, real, u = every[-1]
-        out.append(f"| {run_dir} | {task} | {cell(imagined)} | {cell(real)} | {cell(imagined - real)} |" + (f" {cell(u)} |" if ensemble else ""))
+        out.append(f"| {run_dir} | {task} | {cell(imagined)} | {cell(real)} | {cell(imagined - real)} |" + (f" {cell(u)} |" if ensemble is not None else ""))
     imagined, real = np.concatenate([e[0] for e in every]), np.concatenate([e[1] for e in every])
     out.append(f"| {run_dir} | **all** | {cell(imagined)} | {cell(real)} | **{cell(imagined - real)}** |")
-    if ensemble:
+    if ensemble is not None:
         u = np.concatenate([e[2] for e in every])
         out[-1] += f" **{cell(u)}**, rank correlation with the gap {rank_correlation(u, imagined - real):.2f} |"
     return out
