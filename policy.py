@@ -24,6 +24,7 @@ import torch
 import torch.nn as nn
 import torch.nn.functional as F
 
+from sac import EnsembleLinear
 from world_model import mlp
 
 
@@ -228,13 +229,9 @@ class Disagreement(nn.Module):
 
     def __init__(self, feat_dim, action_dim, target_dim, units=128):
         super().__init__()
-        sizes = [feat_dim + action_dim, units, units, target_dim]
-        self.w = nn.ParameterList()
-        self.b = nn.ParameterList()
-        for i, o in zip(sizes[:-1], sizes[1:]):  # nn.Linear's initialisation, per member
-            bound = 1 / math.sqrt(i)
-            self.w.append(nn.Parameter(torch.empty(self.members, i, o).uniform_(-bound, bound)))
-            self.b.append(nn.Parameter(torch.empty(self.members, 1, o).uniform_(-bound, bound)))
+        K = self.members
+        self.net = nn.Sequential(EnsembleLinear(K, feat_dim + action_dim, units), nn.SiLU(), EnsembleLinear(K, units, units), nn.SiLU(),
+                                 EnsembleLinear(K, units, target_dim))
         self.register_buffer("scale", torch.zeros(()))
 
     @classmethod
@@ -253,10 +250,7 @@ class Disagreement(nn.Module):
         x = torch.cat([feat, action], -1)
         shape = x.shape[:-1]
         x = x.reshape(1, -1, x.shape[-1]).expand(self.members, -1, -1)
-        for k, (w, b) in enumerate(zip(self.w, self.b)):
-            x = torch.baddbmm(b, x, w)
-            x = F.silu(x) if k < len(self.w) - 1 else x
-        return x.reshape(self.members, *shape, -1)
+        return self.net(x).reshape(self.members, *shape, -1)
 
     def disagreement(self, feat, action):
         """u of each step: (..., F), (..., A) -> (...), in units of scale (1 before the first loss)."""

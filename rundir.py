@@ -17,9 +17,9 @@ load_checkpoint, plain, generator, upgrade_checkpoint   checkpoints that load wi
 import contextlib
 import dataclasses
 import fcntl
+import glob
 import json
 import math
-import glob
 import os
 import pickle
 
