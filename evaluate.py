@@ -33,9 +33,9 @@ BODY_TASKS = ("stand", "walk", "run")  # the tasks of D_body, whose average is t
 
 
 @torch.no_grad()
-def run_episodes(env_list, models, goals, steps, obs_key, seed, render=False, random_actions=False, on_step=None, on_state=None):
-    """One episode in each env of env_list (reset with seeds seed, seed + 1, ...), acting with pi(a | s_t, g_i),
-    deterministic (the tanh of the mean), or uniform random actions. goals (N, F), unused with random_actions.
+def run_episodes(env_list, models, goals, steps, obs_key, seed, render=False, random_actions=False, on_step=None, on_state=None, temperature=0.0):
+    """One episode in each env of env_list (reset with seeds seed, seed + 1, ...), acting with pi(a | s_t, g_i) at
+    `temperature` (policy.Actor.act; 0: the tanh of the mean), or uniform random actions. goals (N, F), unused with random_actions.
     on_step(env_list), if given, is called after every step (probes read the physics there); on_state(state), with the
     posterior state dict of (N, .) of every step t = 0 .. steps (not with random_actions).
     -> returns (N,) float array, frames (N, steps + 1, 64, 64, 3) if render else None."""
@@ -61,7 +61,7 @@ def run_episodes(env_list, models, goals, steps, obs_key, seed, render=False, ra
         if random_actions:
             action = rng.uniform(-1, 1, (N, A)).astype(np.float32)
         else:
-            action = actor(wm.feat(state), goals, deterministic=True)[0].cpu().numpy()
+            action = actor.act(wm.feat(state), goals, temperature).cpu().numpy()
         results = [env.step(a) for env, a in zip(env_list, action)]
         obs = np.stack([r[0] for r in results])
         total += [r[1] for r in results]
@@ -143,7 +143,8 @@ def goal_reaching(models, cfgs, episodes=3, steps=envs.EPISODE_STEPS, tasks=envs
         env_list = [envs.make_env(body, task) for _ in range(len(goals))]
         out[task] = {}
         for name in tqdm(("policy", "random"), desc=f"goal reaching {body} {task}", leave=False):
-            returns, _ = run_episodes(env_list, models, goals, steps, cfgs["wm"].obs, 30_000, random_actions=name == "random")
+            returns, _ = run_episodes(env_list, models, goals, steps, cfgs["wm"].obs, cfgs["train"].eval_seed, random_actions=name == "random",
+                                      temperature=cfgs["train"].act_temperature)
             out[task][name] = [episode_score(task, r, steps) for r in returns]
     return out
 

@@ -61,6 +61,7 @@ class ImitateConfig:
     seeds: int = 5  # GIIL-FT seeds (the paper: 3; 5 so that FT vs ZS(demo 0) is measured beyond the noise)
     eval_episodes: int = 3  # episodes per GIIL-ZS goal and per GIIL-FT seed
     eval_steps: int = envs.EPISODE_STEPS
+    act_temperature: float = 0.0  # how the policy acts in the real environment, policy.Actor.act: 0 = tanh of the mean (ours; train.py's)
     video: int = 1  # write demo | agent side-by-side videos
 
 
@@ -250,7 +251,7 @@ def imitate(run_dir, demo, view, finetune, ic, zero_shot=True, done=frozenset())
         render = bool(ic.video) and seed == 0
         env_list = [envs.make_env(tc.env, task) for _ in range(ic.eval_episodes)]
         returns, frames = evaluate.run_episodes(env_list, models, goal[None].expand(ic.eval_episodes, -1), ic.eval_steps,
-                                                cfgs["wm"].obs, 20_000 + 100 * seed, render)
+                                                cfgs["wm"].obs, 20_000 + 100 * seed, render, temperature=ic.act_temperature)
         scores = [evaluate.episode_score(task, r, ic.eval_steps) for r in returns]
         if render:
             write_video(os.path.join(out_dir, f"{demo}_{view}_{method.replace(' ', '_')}_s{seed}.mp4"), video_demo, frames[0])

@@ -130,6 +130,12 @@ class Actor(nn.Module):
         action = torch.tanh(u)
         return action, tanh_gaussian_log_prob(u, mean, std)
 
+    def act(self, feat, goal, temperature=0.0):
+        """How pi acts in the real environment (ours): a = tanh(mean + temperature std eps), eps ~ N(0, I). 0 is the tanh
+        of the mean (Dreamer's evaluation) and draws no random numbers; 1 is a sample of pi. (N, F), (N, G) -> (N, A)."""
+        mean, std = self.distribution(feat, goal)
+        return torch.tanh(mean + temperature * std * torch.randn_like(mean) if temperature else mean)
+
 
 class Critic(nn.Module):
     """V(s, g) on [feat, goal]; goal_dim = 0 gives phase 2's V_ot(s) (goal None)."""

@@ -55,8 +55,10 @@ def load_results(run_dir):
 def result_config(ic, method):
     """The ImitateConfig fields a result depends on: evaluation for the zero-shot columns, finetuning too for GIIL-FT."""
     fields = dataclasses.asdict(ic)
-    keep = ("eval_episodes", "eval_steps") if method.startswith("GIIL-ZS") else tuple(k for k in fields if k not in ("seeds", "video"))
-    return {k: fields[k] for k in keep}
+    if not fields["act_temperature"]:  # rows made before the field acted on the mean, as 0 does: they still count
+        del fields["act_temperature"]
+    keep = ("eval_episodes", "eval_steps", "act_temperature") if method.startswith("GIIL-ZS") else tuple(k for k in fields if k not in ("seeds", "video"))
+    return {k: fields[k] for k in keep if k in fields}
 
 
 def cells(agent):

@@ -44,6 +44,8 @@ class TrainConfig:
     holdout_every: int = 20  # every 20th D_body episode is held out of training, for evaluate.evaluate_imagination
     eval_episodes: int = 3  # goal-reaching benchmark (evaluate.py): episodes per own-body demo goal
     eval_steps: int = 500  # agent steps per goal-reaching episode (a whole episode)
+    act_temperature: float = 0.0  # how the benchmark's policy acts, policy.Actor.act: 0 = tanh of the mean; 0.5 raised the stickman's, not its GIIL-ZS (docs/experiments.md)
+    eval_seed: int = 30_000  # the benchmark's first environment seed; another gives fresh start poses, to confirm a choice made on it
     log_every: int = 100
     checkpoint_every: int = 250
     data: str = "data"
@@ -65,7 +67,7 @@ COMPONENTS = {
     "ac": (policy.ActorCriticConfig, policy.PRESETS, "ac-"),
 }
 # fields that may differ when a run is resumed: they do not change what the models are
-RESUMABLE = {"steps", "log_every", "checkpoint_every", "eval_episodes", "eval_steps", "data", "threads",
+RESUMABLE = {"steps", "log_every", "checkpoint_every", "eval_episodes", "eval_steps", "act_temperature", "eval_seed", "data", "threads",
              "bc_polish", "bc_polish_fresh", "bc_polish_batches"}  # the polish starts from the training actor, kept apart in the checkpoint
 DIVERGED = 1e10  # |loss| above this is divergence (ours: the smoke preset's losses are below 100; a learning rate of 1e3 on
 # the goal VAE, distance or critic gave losses of 1e20 and more within 4 updates)
@@ -157,7 +159,7 @@ def report_goal_reaching(run_dir, models, cfgs, device):
     tc = cfgs["train"]
     scores = evaluate.goal_reaching(models, cfgs, tc.eval_episodes, tc.eval_steps, device=device)
     print(f"goal reaching, {tc.env}: own side-view demos as goals (g = q(s | p_T)), {tc.eval_episodes} episodes per demo, "
-          f"{tc.eval_steps} steps, normalised score (Eq. 8) mean +- s.e.")
+          f"{tc.eval_steps} steps{f', actions at temperature {tc.act_temperature:g}' if tc.act_temperature else ''}, normalised score (Eq. 8) mean +- s.e.")
     print("\n".join(evaluate.summary(scores)))
     print("wrote", evaluate.write_goal_reaching(run_dir, scores))
     return scores
@@ -433,7 +435,8 @@ def main():
         run_cfgs, models, _ = load_run(run_dir, device)
         torch.set_num_threads(tc.threads)
         rundir.fast_matmul()  # oneDNN where it is faster and still fp32 (rundir.py)
-        run_cfgs["train"] = dataclasses.replace(run_cfgs["train"], eval_episodes=tc.eval_episodes, eval_steps=tc.eval_steps, data=tc.data)
+        run_cfgs["train"] = dataclasses.replace(run_cfgs["train"], eval_episodes=tc.eval_episodes, eval_steps=tc.eval_steps,
+                                                act_temperature=tc.act_temperature, eval_seed=tc.eval_seed, data=tc.data)
         report_goal_reaching(run_dir, models, run_cfgs, device)
     else:
         train(cfgs, run_dir, args.resume)

@@ -5,7 +5,7 @@ is "up at the end" when its mean posture over its last 100 steps is >= 0.8. Per 
 steps, the share of episodes up at the end, the mean score of those up and of those down, and the mean of all.
 Three readings:
 * the agent: the benchmark's own episodes (same goals, seeds, threads and matmul route as `python train.py --evaluate`,
-  so the last column is the benchmark's number to the digit);
+  so the last column is the benchmark's number to the digit; --act-temperature as its flag);
 * the D_body task episodes it was trained on (<data>/<body>, from their stored states), with --data-too;
 * with --data-goals, does the goal decide whether it gets up: the stand task with goals q(s | p_T) of D_body stand
   episodes that ended up, then of those that ended down (the first 30 of each by name, the benchmark's seeds).
@@ -38,22 +38,25 @@ def row(name, posture, scores):
     return f"| {name} | {posture.mean():.2f} | {up.mean():.2f} | {cell(scores[up])} | {cell(scores[~up])} | {cell(scores)} |"
 
 
-def agent_row(name, models, cfgs, body, task, p_goals):
-    """The policy's episodes of `task` towards g = q(s | p) of each row of p_goals, seeds from 30000 (the benchmark's)."""
+def agent_row(name, models, cfgs, body, task, p_goals, repeat=1):
+    """The policy's episodes of `task` towards g = q(s | p) of each row of p_goals, each `repeat` times, seeds from 30000
+    (the benchmark's). The goals are encoded before they are repeated, as the benchmark does: the same matmul shapes, so
+    the same floats (a stickman's episode drifts apart from a last-digit difference in its goal)."""
     with torch.no_grad():
-        goals = models["goal_vae"].goal(torch.as_tensor(p_goals))
+        goals = models["goal_vae"].goal(torch.as_tensor(p_goals)).repeat_interleave(repeat, 0)
     env_list = [envs.make_env(body, task) for _ in range(len(goals))]
     posture = []  # (steps, episodes)
     torso = lambda env: (env.physics.named.data.xpos["torso", "z"], env.physics.named.data.xmat["torso", "zz"])
     record = lambda env_list: posture.append([envs.posture(body, *torso(env)) for env in env_list])
-    returns, _ = evaluate.run_episodes(env_list, models, goals, envs.EPISODE_STEPS, cfgs["wm"].obs, 30_000, on_step=record)
+    returns, _ = evaluate.run_episodes(env_list, models, goals, envs.EPISODE_STEPS, cfgs["wm"].obs, 30_000, on_step=record,
+                                       temperature=cfgs["train"].act_temperature)
     return row(name, np.array(posture), np.array([evaluate.episode_score(task, r, envs.EPISODE_STEPS) for r in returns]))
 
 
 def agent_rows(models, cfgs, body):
     for task in evaluate.BODY_TASKS:  # as evaluate.goal_reaching: each demo's last feature, the goal of 3 episodes
         demos = collect.load_folder(os.path.join(cfgs["train"].data, "demos", f"{body}_{task}_side"), ("p",))
-        yield agent_row(task, models, cfgs, body, task, np.stack([d["p"][-1] for d in demos]).repeat(3, 0))
+        yield agent_row(task, models, cfgs, body, task, np.stack([d["p"][-1] for d in demos]), repeat=3)
 
 
 def data_episodes(folder, body, task, keys=("state",)):
@@ -84,10 +87,12 @@ def main():
     parser.add_argument("run", help="a run or agent folder, e.g. agents/stickman")
     parser.add_argument("--data-too", action="store_true", help="also the D_body task episodes of the run's data folder")
     parser.add_argument("--data-goals", action="store_true", help="also stand towards goals of D_body episodes that ended up / down")
+    parser.add_argument("--act-temperature", type=float, default=0.0, help="the policy's actions, as train.py's flag (0: the mean)")
     args = parser.parse_args()
     torch.set_num_threads(train.TrainConfig.threads)  # the benchmark's threads and matmul route (train.py --evaluate):
     rundir.fast_matmul()  # other float sums change a stickman's episodes after a few steps
     cfgs, models, _ = train.load_run(args.run)
+    cfgs["train"].act_temperature = args.act_temperature
     body = cfgs["train"].env
     header = "| posture | up at the end | score of those up | score of those down | all |\n|---|---|---|---|---|---|"
     print(f"| {args.run} (benchmark episodes) {header}")

@@ -51,6 +51,36 @@ def test_run_episodes_sums_each_environment_s_true_reward(smoke_run):
     assert set(scores) == {"stand", "walk", "run", "jump"}
 
 
+def test_run_episodes_acts_at_its_temperature(smoke_run):
+    """Temperature 0 takes the actor's deterministic action on each posterior state (as before the flag); 0.5 acts
+    otherwise, and the same again for the same seed."""
+    import torch
+
+    import envs
+    import train
+
+    _, models, ckpt = train.load_run(smoke_run)
+    wm, actor = models["world_model"], models["actor"]
+    with torch.no_grad():
+        goals = models["goal_vae"].goal(torch.randn(2, ckpt["p_dim"]))
+
+    def episode(temperature):
+        states, actions, act = [], [], actor.act
+        actor.act = lambda feat, goal, t: actions.append(act(feat, goal, t)) or actions[-1]  # what run_episodes acts with
+        try:
+            evaluate.run_episodes([envs.make_env("walker", "walk") for _ in range(2)], models, goals, 4, "state", 0,
+                                  on_state=states.append, temperature=temperature)
+        finally:
+            del actor.act
+        return states, torch.stack(actions)
+
+    states, mean = episode(0.0)
+    with torch.no_grad():
+        assert torch.equal(mean, torch.stack([actor(wm.feat(s), goals, deterministic=True)[0] for s in states[:-1]]))
+    noisy, again = episode(0.5)[1], episode(0.5)[1]
+    assert torch.equal(noisy, again) and (noisy - mean).abs().max() > 1e-3
+
+
 def test_reachable_reward_across_runs_by_hand(tmp_path):
     """First row against the mean of the last rows, over runs: rows without reward_reachable (before the actor) skipped."""
     runs = []

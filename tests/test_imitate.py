@@ -134,9 +134,9 @@ def test_every_finetuning_seed_starts_from_the_pretrained_policy(smoke_run, tmp_
         seen.append(actor_sum(models))
         return finetune(models, *args)
 
-    def recording_eval(env_list, models, *args):
+    def recording_eval(env_list, models, *args, **kwargs):
         evaluated.append(actor_sum(models))
-        return run_episodes(env_list, models, *args)
+        return run_episodes(env_list, models, *args, **kwargs)
 
     monkeypatch.setattr(imitate, "finetune_goal", recording)
     monkeypatch.setattr(imitate.evaluate, "run_episodes", recording_eval)

@@ -155,6 +155,27 @@ def test_actor_with_its_goal_input_computed_once_equals_the_concatenated_layer()
     assert (other - mean).abs().max() > 1e-3  # the action depends on the goal
 
 
+def test_act_scales_the_noise_of_pi_by_the_temperature_and_is_the_mean_at_zero():
+    """a = tanh(mean + T std eps): at T = 0 the deterministic action, drawing no random numbers; at T > 0 the noise
+    atanh(a) - mean is T std times the seeded eps (T = 1: forward's sample)."""
+    torch.manual_seed(0)
+    actor = P.Actor(P.ActorCriticConfig(**P.PRESETS["smoke"]), 6, 4, 3)
+    feat, goal = torch.randn(50, 6), torch.randn(50, 4)
+    with torch.no_grad():
+        mean, std = actor.distribution(feat, goal)
+        state = torch.get_rng_state()
+        assert torch.equal(actor.act(feat, goal, 0.0), actor(feat, goal, deterministic=True)[0])
+        assert torch.equal(torch.get_rng_state(), state)
+        for temperature in (0.5, 1.0):
+            torch.manual_seed(1)
+            action = actor.act(feat, goal, temperature)
+            torch.manual_seed(1)
+            eps = torch.randn_like(mean)
+            assert torch.allclose(torch.atanh(action.double()).float(), mean + temperature * std * eps, atol=1e-4)
+        torch.manual_seed(1)
+        assert torch.allclose(action, actor(feat, goal)[0])  # T = 1 is a sample of pi
+
+
 def test_phase2_reuse_sends_gradient_to_the_goal_only():
     """Eq. 5's pattern: frozen world model and actor, a critic V(s) without goal, a reward of the states only."""
     torch.manual_seed(0)
