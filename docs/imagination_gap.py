@@ -36,26 +36,28 @@ def real_reward(dist_net, feats, goals, t0, horizon):
     return policy.goal_reward(dist_net, feats[:, t0 : t0 + horizon + 1], goals).mean(1)
 
 
-@torch.no_grad()
-def imagined_reward(models, start, goals, horizon, seed=0):
-    """-d(s_k, g) of `horizon` steps imagined from `start` (state dict of (N, .)) with the actor's mean action given g,
-    as Eq. 4's rollout: each episode's mean (N,)."""
+def imagined_path(models, start, goals, horizon, seed=0):
+    """`horizon` steps imagined from `start` (state dict of (N, .)) with the actor's mean action given g, as Eq. 4's
+    rollout, the prior's samples z seeded: states (N, H + 1, .), actions (N, H, A)."""
     wm, actor = models["world_model"], models["actor"]
     goal_in = actor.goal_input(goals)
-    torch.manual_seed(seed)  # the prior's samples z
-    states, _ = wm.imagine(start, lambda feat: actor(feat, goals, deterministic=True, goal_in=goal_in)[0], horizon)
-    return policy.goal_reward(models["dist_net"], wm.feat(states), goals).mean(1)
+    torch.manual_seed(seed)
+    return wm.imagine(start, lambda feat: actor(feat, goals, deterministic=True, goal_in=goal_in)[0], horizon)
+
+
+@torch.no_grad()
+def imagined_reward(models, start, goals, horizon, seed=0):
+    """-d(s_k, g) on imagined_path: each episode's mean (N,)."""
+    states, _ = imagined_path(models, start, goals, horizon, seed)
+    return policy.goal_reward(models["dist_net"], models["world_model"].feat(states), goals).mean(1)
 
 
 @torch.no_grad()
 def imagined_uncertainty(models, ensemble, start, goals, horizon, seed=0):
     """u of policy.Disagreement on the steps imagined_reward imagines (the same seed, the same path): each episode's
     mean over s_k, a_k, k = 0 .. horizon - 1 (N,)."""
-    wm, actor = models["world_model"], models["actor"]
-    goal_in = actor.goal_input(goals)
-    torch.manual_seed(seed)
-    states, actions = wm.imagine(start, lambda feat: actor(feat, goals, deterministic=True, goal_in=goal_in)[0], horizon)
-    return ensemble.disagreement(wm.feat(states)[:, :-1], actions).mean(1)
+    states, actions = imagined_path(models, start, goals, horizon, seed)
+    return ensemble.disagreement(models["world_model"].feat(states)[:, :-1], actions).mean(1)
 
 
 def train_ensemble(cfgs, models, updates, seed=0):
