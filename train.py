@@ -50,6 +50,7 @@ class TrainConfig:
     checkpoint_every: int = 250
     data: str = "data"
     encoder: str = "default"  # video encoder of the features p_t (video_encoder.py)
+    cover_edges: int = 0  # 1: D_body segments cover an episode's first and last steps as often as its middle (collect.Segments; ours)
     threads: int = 1  # torch CPU threads: these small models ran 6x faster on 1 than on torch's default 2 with the cores shared (measured)
 
 
@@ -203,7 +204,7 @@ def prepare_data(cfgs):
     episodes = collect.load_folder(folder, (wc.obs, "action", "is_first", "p"), encoder=encoder.name)
     held_out = episodes[:: tc.holdout_every]
     train_eps = [e for k, e in enumerate(episodes) if k % tc.holdout_every]
-    data = collect.Segments(train_eps, (wc.obs, "action", "is_first", "p"), wc.seq_len)
+    data = collect.Segments(train_eps, (wc.obs, "action", "is_first", "p"), wc.seq_len, bool(tc.cover_edges))
     obs_shape = episodes[0][wc.obs].shape[1] if wc.obs == "state" else (64, 64, 3)
     print(f"D_body {folder}: {len(train_eps)} training + {len(held_out)} held-out episodes, {sum(data.lengths)} steps, features {encoder.name}")
     return encoder, data, held_out, (obs_shape, episodes[0]["action"].shape[1], episodes[0]["p"].shape[1])

@@ -81,6 +81,21 @@ def test_segments_stay_inside_episodes(smoke_data):
         assert np.array_equal(states[first : first + 8], batch["state"][b].numpy())
 
 
+def test_cover_edges_samples_an_episodes_first_steps_as_often_as_its_middle():
+    """Uniform starts put an episode's first step in ~1/T of the segments a middle step is in; with cover_edges every
+    step is in at least as many (up to 2x at the edges), and no segment leaves its episode."""
+    T, L = 10, 60
+    episodes = [{"is_first": np.arange(L) == 0, "step": np.arange(L) + 1000 * k} for k in range(3)]
+    for cover, first_low, first_high in ((False, 0.0, 0.2), (True, 0.8, 1.3)):
+        steps = collect.Segments(episodes, ("step",), T, cover).sample(20_000, np.random.default_rng(0), "cpu")["step"].numpy()
+        assert (np.diff(steps, axis=1) == 1).all()  # consecutive steps of one episode
+        count = np.bincount(steps.ravel() % 1000, minlength=L) / 3
+        middle = count[T : L - T].mean()
+        assert first_low < count[0] / middle < first_high, (cover, count[0] / middle)
+        if cover:
+            assert count.min() > 0.9 * middle and count.max() < 2.1 * middle
+
+
 def test_a_smaller_older_d_body_grows_to_the_preset_before_training(smoke_data, tmp_path, monkeypatch):
     """A D_body collected when the preset asked for fewer episodes per task is completed, not trained on as it is;
     what exists is kept."""
