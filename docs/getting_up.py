@@ -3,15 +3,19 @@ through the body's posture, the stand reward (3 standing + upright) / 4 (envs.po
 walk and run multiply their speed term by it). Every episode starts from DMC's random pose and falls first. An episode
 is "up at the end" when its mean posture over its last 100 steps is >= 0.8. Per task: the mean posture over all
 steps, the share of episodes up at the end, the mean score of those up and of those down, and the mean of all.
-Three readings:
+Four readings:
 * the agent: the benchmark's own episodes (same goals, seeds, threads and matmul route as `python train.py --evaluate`,
   so the last column is the benchmark's number to the digit; --act-temperature as its flag);
-* the D_body task episodes it was trained on (<data>/<body>, from their stored states), with --data-too;
+* the D_body task episodes it was trained on (<data>/<body>, from their stored states; --data: another folder than
+  the run's), with --data-too, and when those that end up are on the ground (landing);
+* with --other-goals, each task also towards the goals of the other tasks' demos (does the goal decide the task,
+  and does a stand goal get it up as often as a walk goal), and the posture the world model reads in each goal;
 * with --data-goals, does the goal decide whether it gets up: the stand task with goals q(s | p_T) of D_body stand
   episodes that ended up, then of those that ended down (the first 30 of each by name, the benchmark's seeds).
 Run from the repository root:
 
     python docs/getting_up.py agents/stickman --data-too --data-goals
+    python docs/getting_up.py agents/stickman --other-goals --data-too --data data/late
 """
 import argparse
 import glob
@@ -53,10 +57,26 @@ def agent_row(name, models, cfgs, body, task, p_goals, repeat=1):
     return row(name, np.array(posture), np.array([evaluate.episode_score(task, r, envs.EPISODE_STEPS) for r in returns]))
 
 
-def agent_rows(models, cfgs, body):
-    for task in evaluate.BODY_TASKS:  # as evaluate.goal_reaching: each demo's last feature, the goal of 3 episodes
-        demos = collect.load_folder(os.path.join(cfgs["train"].data, "demos", f"{body}_{task}_side"), ("p",))
-        yield agent_row(task, models, cfgs, body, task, np.stack([d["p"][-1] for d in demos]), repeat=3)
+def demo_goals(cfgs, body):
+    """{task: (10, D)}: the last video feature of each own-body side-view demo, the benchmark's goals before encoding."""
+    folder = lambda task: os.path.join(cfgs["train"].data, "demos", f"{body}_{task}_side")
+    return {task: np.stack([d["p"][-1] for d in collect.load_folder(folder(task), ("p",))]) for task in evaluate.BODY_TASKS}
+
+
+def decoded_posture(models, body, p_goals):
+    """The posture the world model's decoder reads in the goals q(s | p): is a stand goal a body standing?"""
+    with torch.no_grad():
+        obs = models["world_model"].decode(models["goal_vae"].goal(torch.as_tensor(p_goals))[:, None])[:, 0].numpy()
+    return envs.posture(body, obs[:, -1 - envs.make_env(body, "stand").physics.model.nv], obs[:, 0]).mean()
+
+
+def agent_rows(models, cfgs, body, goals, other_goals=False):
+    """As evaluate.goal_reaching: each demo's last feature (goals, demo_goals), the goal of 3 episodes; with
+    other_goals, each task also towards the other tasks' demo goals."""
+    for task in evaluate.BODY_TASKS:
+        for goal_task in evaluate.BODY_TASKS if other_goals else (task,):
+            name = task if goal_task == task else f"{task}, goals of {goal_task} demos"
+            yield agent_row(name, models, cfgs, body, task, goals[goal_task], repeat=3)
 
 
 def data_episodes(folder, body, task, keys=("state",)):
@@ -74,6 +94,16 @@ def data_rows(folder, body):
         yield row(task, np.stack(posture, 1), np.array([float(envs.normalized_score(task, e["return"])) for e in episodes]))
 
 
+def landing(posture):
+    """When episodes that end up are on the ground: of posture, a list of (steps,) per episode, those up at the end,
+    -> (their count, the median step of their lowest posture in the first 150 steps, the median first step after it
+    back at posture >= UP)."""
+    up = [p for p in posture if p[-LAST:].mean() >= UP]
+    low = np.array([np.argmin(p[:150]) for p in up])
+    again = np.array([k + np.argmax(p[k:] >= UP) for k, p in zip(low, up)])
+    return len(up), float(np.median(low)), float(np.median(again))
+
+
 def data_goal_rows(models, cfgs, folder, body):
     episodes, posture = data_episodes(folder, body, "stand", ("state", "p"))
     up = np.array([p[-LAST:].mean() >= UP for p in posture])
@@ -87,20 +117,29 @@ def main():
     parser.add_argument("run", help="a run or agent folder, e.g. agents/stickman")
     parser.add_argument("--data-too", action="store_true", help="also the D_body task episodes of the run's data folder")
     parser.add_argument("--data-goals", action="store_true", help="also stand towards goals of D_body episodes that ended up / down")
+    parser.add_argument("--other-goals", action="store_true", help="also each task towards the other tasks' demo goals")
+    parser.add_argument("--data", help="the data folder of D_body and the demos (default: the run's)")
     parser.add_argument("--act-temperature", type=float, default=0.0, help="the policy's actions, as train.py's flag (0: the mean)")
     args = parser.parse_args()
     torch.set_num_threads(train.TrainConfig.threads)  # the benchmark's threads and matmul route (train.py --evaluate):
     rundir.fast_matmul()  # other float sums change a stickman's episodes after a few steps
     cfgs, models, _ = train.load_run(args.run)
     cfgs["train"].act_temperature = args.act_temperature
+    cfgs["train"].data = args.data or cfgs["train"].data
     body = cfgs["train"].env
+    goals = demo_goals(cfgs, body)
     header = "| posture | up at the end | score of those up | score of those down | all |\n|---|---|---|---|---|---|"
     print(f"| {args.run} (benchmark episodes) {header}")
-    print("\n".join(agent_rows(models, cfgs, body)))
+    print("\n".join(agent_rows(models, cfgs, body, goals, args.other_goals)))
+    if args.other_goals:
+        print("the demo goals q(s | p_T), read by the world model's decoder: posture",
+              ", ".join(f"{task} {decoded_posture(models, body, p):.2f}" for task, p in goals.items()))
     folder = os.path.join(cfgs["train"].data, body)
     if args.data_too:
         print(f"\n| {folder} (D_body task episodes) {header}")
         print("\n".join(data_rows(folder, body)))
+        for task in evaluate.BODY_TASKS:
+            print("{}: {} episodes up at the end, lowest at step {:.0f}, up again at step {:.0f} (medians)".format(task, *landing(data_episodes(folder, body, task)[1])))
     if args.data_goals:
         print(f"\n| {args.run} (goals from {folder}) {header}")
         print("\n".join(data_goal_rows(models, cfgs, folder, body)))

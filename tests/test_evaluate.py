@@ -129,6 +129,15 @@ def test_getting_up_row_classes_episodes_by_their_last_steps():
     assert line == f"| stand | {posture.mean():.2f} | 0.33 | 90.0 +- 0.0 (1) | 20.0 +- 10.0 (2) | 43.3 +- 24.0 (3) |"
 
 
+def test_getting_up_landing_times_the_fall_of_episodes_that_end_up():
+    """docs/getting_up.py's landing: of the episodes up at the end, the median step of the lowest posture (first 150
+    steps) and of the first step back up after it; an episode that stays down is left out."""
+    getting_up = docs_script("getting_up")
+    fall = lambda low, again: np.concatenate([np.ones(low), np.full(again - low, 0.1), np.ones(500 - again)])
+    down = np.concatenate([np.ones(5), np.zeros(495)])
+    assert getting_up.landing([fall(5, 15), fall(9, 30), fall(11, 40), down]) == (3, 9.0, 30.0)
+
+
 def test_imagination_gap_is_zero_when_reality_follows_imagination(smoke_run):
     """docs/imagination_gap.py: read as real steps, the imagined states give the imagined reading (both -d(s_k, g) on
     arrival, k = 1 .. H); run_episodes hands over one posterior state per step, t = 0 .. steps."""
