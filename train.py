@@ -50,7 +50,7 @@ class TrainConfig:
     checkpoint_every: int = 250
     data: str = "data"
     encoder: str = "default"  # video encoder of the features p_t (video_encoder.py)
-    cover_edges: int = 0  # 1: D_body segments cover an episode's first and last steps as often as its middle (collect.Segments; ours)
+    cover_edges: int = 0  # 1: D_body segments cover an episode's first steps at least as often as its middle (collect.Segments; ours); no gain on 3 stickman seeds (docs/experiments.md)
     threads: int = 1  # torch CPU threads: these small models ran 6x faster on 1 than on torch's default 2 with the cores shared (measured)
 
 

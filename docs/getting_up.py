@@ -131,7 +131,7 @@ def main():
     header = "| posture | up at the end | score of those up | score of those down | all |\n|---|---|---|---|---|---|"
     print(f"| {args.run} (benchmark episodes) {header}")
     print("\n".join(agent_rows(models, cfgs, body, goals, args.other_goals)))
-    if args.other_goals:
+    if args.other_goals and cfgs["wm"].obs == "state":  # the posture is read off a decoded state observation
         print("the demo goals q(s | p_T), read by the world model's decoder: posture",
               ", ".join(f"{task} {decoded_posture(models, body, p):.2f}" for task, p in goals.items()))
     folder = os.path.join(cfgs["train"].data, body)
