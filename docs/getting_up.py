@@ -43,16 +43,16 @@ def row(name, posture, scores):
 
 
 def agent_row(name, models, cfgs, body, task, p_goals, repeat=1):
-    """The policy's episodes of `task` towards g = q(s | p) of each row of p_goals, each `repeat` times, seeds from 30000
-    (the benchmark's). The goals are encoded before they are repeated, as the benchmark does: the same matmul shapes, so
-    the same floats (a stickman's episode drifts apart from a last-digit difference in its goal)."""
+    """The policy's episodes of `task` towards g = q(s | p) of each row of p_goals, each `repeat` times, seeds from the
+    benchmark's eval_seed (30000). The goals are encoded before they are repeated, as the benchmark does: the same
+    matmul shapes, so the same floats (a stickman's episode drifts apart from a last-digit difference in its goal)."""
     with torch.no_grad():
         goals = models["goal_vae"].goal(torch.as_tensor(p_goals)).repeat_interleave(repeat, 0)
     env_list = [envs.make_env(body, task) for _ in range(len(goals))]
     posture = []  # (steps, episodes)
     torso = lambda env: (env.physics.named.data.xpos["torso", "z"], env.physics.named.data.xmat["torso", "zz"])
     record = lambda env_list: posture.append([envs.posture(body, *torso(env)) for env in env_list])
-    returns, _ = evaluate.run_episodes(env_list, models, goals, envs.EPISODE_STEPS, cfgs["wm"].obs, 30_000, on_step=record,
+    returns, _ = evaluate.run_episodes(env_list, models, goals, envs.EPISODE_STEPS, cfgs["wm"].obs, cfgs["train"].eval_seed, on_step=record,
                                        temperature=cfgs["train"].act_temperature)
     return row(name, np.array(posture), np.array([evaluate.episode_score(task, r, envs.EPISODE_STEPS) for r in returns]))
 
@@ -63,11 +63,17 @@ def demo_goals(cfgs, body):
     return {task: np.stack([d["p"][-1] for d in collect.load_folder(folder(task), ("p",))]) for task in evaluate.BODY_TASKS}
 
 
+def observed_posture(body, obs):
+    """envs.posture of state observations (..., obs_dim): torso zz at obs[0], the torso height at obs[-1 - nv]."""
+    height = -1 - envs.make_env(body, "stand").physics.model.nv
+    return envs.posture(body, obs[..., height], obs[..., 0])
+
+
 def decoded_posture(models, body, p_goals):
     """The posture the world model's decoder reads in the goals q(s | p): is a stand goal a body standing?"""
     with torch.no_grad():
         obs = models["world_model"].decode(models["goal_vae"].goal(torch.as_tensor(p_goals))[:, None])[:, 0].numpy()
-    return envs.posture(body, obs[:, -1 - envs.make_env(body, "stand").physics.model.nv], obs[:, 0]).mean()
+    return observed_posture(body, obs).mean()
 
 
 def agent_rows(models, cfgs, body, goals, other_goals=False):
@@ -84,8 +90,7 @@ def data_episodes(folder, body, task, keys=("state",)):
     episodes = [collect.load_episode(path, keys) for path in sorted(glob.glob(os.path.join(folder, f"{task}_*.npz")))]
     if not episodes:
         raise FileNotFoundError(f"no {task} episodes in {folder}: collect them with `python collect.py --env {body}`")
-    height = -1 - envs.make_env(body, "stand").physics.model.nv  # the torso height's place in a state (envs.posture)
-    return episodes, [envs.posture(body, e["state"][:, height], e["state"][:, 0]) for e in episodes]
+    return episodes, [observed_posture(body, e["state"]) for e in episodes]
 
 
 def data_rows(folder, body):
