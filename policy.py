@@ -56,6 +56,7 @@ class ActorCriticConfig:
     bc_polish_fresh: int = 0  # 1: those steps train a freshly initialised actor instead of the trained one (ours; train.polish)
     bc_polish_batches: int = 250  # D_body batches whose posterior states the polish computes once and cycles (ours; train.polish)
     uncertainty: float = 0.0  # lambda of the penalty r^goal - lambda u on imagined steps, u the disagreement of an ensemble of next-observation predictors in units of its mean on D_body (ours, Disagreement; MOPO, Yu et al. 2020; 0 = off)
+    mixture: int = 1  # Gaussian components of pi before the tanh (ours; 1 = Dreamer's tanh-normal): a clone of D_body's mixed snapshots may need more than one mode (Actor)
     bc_awr: float = 0.0  # beta of advantage-weighted cloning: bc_loss weighs each action by exp(beta * its standardised advantage) (ours; 0 = plain cloning, kept: beta 1 lost 9.3 points on the stickman, docs/experiments.md)
 
 
@@ -97,12 +98,19 @@ def tanh_gaussian_log_prob(u, mean, std):
 
 
 class Actor(nn.Module):
-    """pi(a | s, g): a tanh-squashed Gaussian (Dreamer V1's tanh-normal) on [feat, goal]."""
+    """pi(a | s, g): a tanh-squashed Gaussian (Dreamer V1's tanh-normal) on [feat, goal]; with cfg.mixture = K > 1 a
+    tanh-squashed mixture of K Gaussians (ours; a mixture density network, Bishop 1994). Why a mixture: the actor is
+    mostly a hindsight clone of D_body, whose task episodes are snapshots of learning histories, so one state and goal
+    can carry actions of several modes (push up one way, or the other, or stay down); a single Gaussian's mean
+    averages them, a mixture's mode picks one. Acting deterministically, the mixture takes the mean of its most
+    probable component; a sample picks a component k ~ Cat(w), then u = mean_k + std_k eps, reparameterised within
+    the component (the component's choice passes no gradient to Eq. 4's actor loss; its log-probability does)."""
 
     def __init__(self, cfg, feat_dim, goal_dim, action_dim):
         super().__init__()
         self.cfg, self.goal_dim, self.action_dim = cfg, goal_dim, action_dim
-        self.net = mlp(feat_dim + goal_dim, cfg.units, 2 * action_dim, cfg.actor_layers)
+        K = cfg.mixture
+        self.net = mlp(feat_dim + goal_dim, cfg.units, 2 * action_dim * K + (K if K > 1 else 0), cfg.actor_layers)
 
     def goal_input(self, goal):
         """The goal's share of the first layer, W_g g + b: (N, G) or (1, G) -> (N, units). It is the same at every
@@ -110,31 +118,76 @@ class Actor(nn.Module):
         assert goal.shape[-1] == self.goal_dim and goal.dim() == 2, goal.shape
         return goal_share(self.net[0], goal)
 
-    def distribution(self, feat, goal, goal_in=None):
-        """The Gaussian before the tanh: feat (N, F), goal (N, G) or (1, G) -> mean, std (N, A).
-        goal_in: goal_input(goal) when already computed."""
-        cfg = self.cfg
+    def _heads(self, feat, goal, goal_in):
+        """The network's raw output on [feat, goal] -> (N, out)."""
         assert feat.dim() == 2, feat.shape
         goal_in = self.goal_input(goal) if goal_in is None else goal_in
-        mean, std = self.net[1:](feat_share(self.net[0], feat) + goal_in).chunk(2, -1)
+        return self.net[1:](feat_share(self.net[0], feat) + goal_in)
+
+    def _bounded(self, mean, std):
+        cfg = self.cfg
         mean = cfg.mean_scale * torch.tanh(mean / cfg.mean_scale)
         std = (cfg.max_std - cfg.min_std) * torch.sigmoid(std + 2.0) + cfg.min_std  # Dreamer V3's bounded std
         return mean, std
 
+    def distribution(self, feat, goal, goal_in=None):
+        """The Gaussian before the tanh: feat (N, F), goal (N, G) or (1, G) -> mean, std (N, A); for a mixture, those
+        of its most probable component. goal_in: goal_input(goal) when already computed."""
+        if self.cfg.mixture > 1:
+            logits, mean, std = self.components(feat, goal, goal_in)
+            return self._pick(logits.argmax(-1), mean, std)
+        return self._bounded(*self._heads(feat, goal, goal_in).chunk(2, -1))
+
+    def components(self, feat, goal, goal_in=None):
+        """The mixture (cfg.mixture = K > 1): logits (N, K) of the weights w, mean, std (N, K, A) of each Gaussian."""
+        K, A = self.cfg.mixture, self.action_dim
+        out = self._heads(feat, goal, goal_in)
+        mean, std = out[:, K:].unflatten(-1, (K, 2 * A)).chunk(2, -1)
+        return out[:, :K], *self._bounded(mean, std)
+
+    def _pick(self, k, mean, std):
+        """Component k (N,) of each row: mean, std (N, K, A) -> (N, A) each."""
+        index = k[:, None, None].expand(-1, 1, self.action_dim)
+        return mean.gather(1, index)[:, 0], std.gather(1, index)[:, 0]
+
+    @staticmethod
+    def _mixture_log_prob(u, logits, mean, std):
+        """log sum_k w_k N(u; mean_k, std_k) minus the tanh Jacobian: u (N, A), logits (N, K), mean, std (N, K, A) -> (N,)."""
+        jacobian = (2 * (math.log(2) - u - F.softplus(-2 * u))).sum(-1)  # log(1 - tanh(u)^2) summed over actions
+        per_component = tanh_gaussian_log_prob(u[:, None], mean, std) + jacobian[:, None]  # (N, K): log N(u; mean_k, std_k)
+        return torch.logsumexp(logits.log_softmax(-1) + per_component, -1) - jacobian
+
+    def log_prob(self, feat, goal, u, goal_in=None):
+        """log pi(tanh(u) | s, g) of pre-tanh actions u (N, A) -> (N,)."""
+        if self.cfg.mixture == 1:
+            return tanh_gaussian_log_prob(u, *self.distribution(feat, goal, goal_in))
+        return self._mixture_log_prob(u, *self.components(feat, goal, goal_in))
+
     def forward(self, feat, goal, deterministic=False, goal_in=None):
         """feat (N, F), goal (N, G) -> action (N, A) in [-1, 1], log pi(action | s, g) (N,) (None if deterministic)."""
-        mean, std = self.distribution(feat, goal, goal_in)
         if deterministic:
-            return torch.tanh(mean), None
-        u = mean + std * torch.randn_like(mean)  # reparameterised: the actor loss differentiates through the sample
-        action = torch.tanh(u)
-        return action, tanh_gaussian_log_prob(u, mean, std)
+            return torch.tanh(self.distribution(feat, goal, goal_in)[0]), None
+        if self.cfg.mixture == 1:
+            mean, std = self.distribution(feat, goal, goal_in)
+            u = mean + std * torch.randn_like(mean)  # reparameterised: the actor loss differentiates through the sample
+            return torch.tanh(u), tanh_gaussian_log_prob(u, mean, std)
+        logits, mean, std = self.components(feat, goal, goal_in)
+        k_mean, k_std = self._pick(torch.multinomial(logits.detach().softmax(-1), 1)[:, 0], mean, std)  # k ~ Cat(w)
+        u = k_mean + k_std * torch.randn_like(k_mean)  # reparameterised within component k
+        return torch.tanh(u), self._mixture_log_prob(u, logits, mean, std)
 
     def act(self, feat, goal, temperature=0.0):
-        """How pi acts in the real environment (ours): a = tanh(mean + temperature std eps), eps ~ N(0, I). 0 is the tanh
-        of the mean (Dreamer's evaluation) and draws no random numbers; 1 is a sample of pi. (N, F), (N, G) -> (N, A)."""
-        mean, std = self.distribution(feat, goal)
-        return torch.tanh(mean + temperature * std * torch.randn_like(mean) if temperature else mean)
+        """How pi acts in the real environment (ours): a = tanh(mean + temperature std eps), eps ~ N(0, I), of the one
+        Gaussian or of a component drawn by its weight. 0 is the tanh of the (most probable component's) mean, Dreamer's
+        evaluation, and draws no random numbers; 1 is a sample of pi. (N, F), (N, G) -> (N, A)."""
+        if not temperature:
+            return torch.tanh(self.distribution(feat, goal)[0])
+        if self.cfg.mixture == 1:
+            mean, std = self.distribution(feat, goal)
+        else:
+            logits, mean, std = self.components(feat, goal)
+            mean, std = self._pick(torch.multinomial(logits.softmax(-1), 1)[:, 0], mean, std)
+        return torch.tanh(mean + temperature * std * torch.randn_like(mean))
 
 
 class Critic(nn.Module):
@@ -365,9 +418,8 @@ def bc_loss(actor, post_feat, goal_feat, action, final_goal=None, final_share=0.
         final = torch.rand(B, T - 1, 1, device=device) < final_share
         goal = torch.where(final, final_goal[:, None].expand_as(goal), goal)
     feat, goal = post_feat[rows, t].flatten(0, 1).detach(), goal.flatten(0, 1).detach()
-    mean, std = actor.distribution(feat, goal)
     a = action[rows, t + 1].flatten(0, 1).clamp(-0.999, 0.999)  # tanh is never exactly +-1
-    log_prob = tanh_gaussian_log_prob(torch.atanh(a), mean, std)
+    log_prob = actor.log_prob(feat, goal, torch.atanh(a))
     if weigh is None:
         loss = -log_prob.mean()
         return loss, {"bc_loss": loss.item()}

@@ -45,6 +45,48 @@ def test_tanh_gaussian_log_prob_matches_torch_distributions():
     assert torch.allclose(log_prob, expected, atol=1e-6)
 
 
+def test_mixture_log_prob_matches_torch_distributions_and_forward_samples_it():
+    """cfg.mixture = K > 1: log pi is the tanh-squashed mixture's density (torch.distributions' MixtureSameFamily),
+    forward's log_prob is log_prob of its own sample, deterministic is the tanh of the most probable component's mean."""
+    from torch.distributions import Categorical, Independent, MixtureSameFamily
+
+    torch.manual_seed(0)
+    cfg = P.ActorCriticConfig(**P.PRESETS["smoke"], mixture=3)
+    actor = P.Actor(cfg, 6, 3, 2).double()
+    feat, goal = torch.randn(50, 6, dtype=torch.float64), torch.randn(50, 3, dtype=torch.float64)
+    logits, mean, std = actor.components(feat, goal)
+    assert logits.shape == (50, 3) and mean.shape == std.shape == (50, 3, 2)
+    mixture = MixtureSameFamily(Categorical(logits=logits), Independent(Normal(mean, std), 1))
+    action, log_prob = actor(feat, goal)
+    u = torch.atanh(action)
+    jacobian = torch.log(1 - action**2).sum(-1)
+    assert torch.allclose(actor.log_prob(feat, goal, u), mixture.log_prob(u) - jacobian, atol=1e-6)
+    assert torch.allclose(log_prob, mixture.log_prob(u) - jacobian, atol=1e-6)
+    mode = mean[torch.arange(50), logits.argmax(-1)]
+    assert torch.equal(actor(feat, goal, deterministic=True)[0], torch.tanh(mode))
+    assert torch.equal(actor.act(feat, goal, 0.0), torch.tanh(mode))
+
+
+def test_a_mixture_clone_picks_a_mode_where_one_gaussian_averages_two():
+    """The reason for cfg.mixture: cloned on data whose action is +0.8 or -0.8 half the time each in the same state,
+    one Gaussian's mean lands between the two (near 0); two components put their most probable mean on one of them."""
+    torch.manual_seed(0)
+    feat, goal = torch.zeros(256, 4), torch.zeros(256, 2)
+    a = torch.where(torch.rand(256, 1) < 0.5, 0.8, -0.8)  # (256, 1): one action dimension
+    modes = {}
+    for K in (1, 2):
+        actor = P.Actor(P.ActorCriticConfig(units=32, actor_layers=2, mixture=K), 4, 2, 1)
+        opt = torch.optim.Adam(actor.parameters(), lr=3e-3)
+        for _ in range(600):
+            loss = -actor.log_prob(feat, goal, torch.atanh(a)).mean()
+            opt.zero_grad()
+            loss.backward()
+            opt.step()
+        modes[K] = actor.act(feat[:1], goal[:1]).item()
+    assert abs(modes[1]) < 0.2, modes
+    assert abs(abs(modes[2]) - 0.8) < 0.1, modes
+
+
 def make_agents(goal_dim=None):
     cfg = P.ActorCriticConfig(**P.PRESETS["smoke"])
     world_model = W.WorldModel(W.WorldModelConfig(**W.PRESETS["smoke"]), 5, 2)

@@ -192,6 +192,18 @@ def test_bc_steps_are_extra_actor_steps_and_the_feature_reward_trains(smoke_data
     assert last["grad_eq4"] > 0 and last["grad_bc"] > 0  # each term's share of the actor's step, logged
 
 
+def test_a_mixture_actor_trains_with_eq4_and_cloning_and_loads_back(smoke_data, tmp_path):
+    """--ac-mixture 3: Eq. 4's rollout samples the mixture, the cloning and the polish read its log-probability; the
+    checkpoint loads back into a mixture actor (its output layer has 3 logits and 3 x 2A Gaussian heads)."""
+    cfgs = train.resolve_configs(train_args(data=smoke_data, **{"ac.bc": 1.0, "ac.bc_steps": 2, "ac.bc_polish": 3, "ac.mixture": 3}), "smoke")
+    run = train.train(cfgs, str(tmp_path / "mixture"), resume=False)
+    last = [json.loads(l) for l in open(os.path.join(run, "metrics.jsonl"))][-1]
+    assert np.isfinite(last["actor_loss"]) and np.isfinite(last["bc_loss"]) and np.isfinite(last["entropy"])
+    loaded, models, _ = train.load_run(run)
+    actor = models["actor"]
+    assert loaded["ac"].mixture == 3 and actor.net[-1].out_features == 3 + 3 * 2 * actor.action_dim
+
+
 def test_uncertainty_penalty_trains_its_ensemble_and_resumes(smoke_run, smoke_data, tmp_path):
     """--ac-uncertainty: the run keeps a policy.Disagreement trained every update (Adam counts one step per update),
     logs the penalty's u, and resumes with it; runs without the flag have no ensemble."""
