@@ -123,7 +123,8 @@ def train_policy(models, cfgs, gc, target, segments, seed, device):
     torch.manual_seed(seed)
     rng = np.random.default_rng(seed)
     ac, wc, wm = cfgs["ac"], cfgs["wm"], models["world_model"]
-    actor = policy.Actor(ac, wm.feat_dim, 1, wm.action_dim).to(device)
+    task_ac = dataclasses.replace(ac, actor_input="feat", mixture=1)  # the baseline's own actor, Dreamer's, whatever phase 1's reads
+    actor = policy.Actor(task_ac, wm.feat_dim, 1, wm.action_dim).to(device)
     critic, slow_critic = (m.to(device) for m in policy.make_critics(ac, wm.feat_dim, 0))
     return_norm = policy.ReturnNorm(ac.return_norm_decay).to(device)
     optims = [(torch.optim.Adam(actor.parameters(), lr=ac.actor_lr), actor), (torch.optim.Adam(critic.parameters(), lr=ac.critic_lr), critic)]

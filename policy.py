@@ -56,11 +56,13 @@ class ActorCriticConfig:
     bc_polish_fresh: int = 0  # 1: those steps train a freshly initialised actor instead of the trained one (ours; train.polish)
     bc_polish_batches: int = 250  # D_body batches whose posterior states the polish computes once and cycles (ours; train.polish)
     uncertainty: float = 0.0  # lambda of the penalty r^goal - lambda u on imagined steps, u the disagreement of an ensemble of next-observation predictors in units of its mean on D_body (ours, Disagreement; MOPO, Yu et al. 2020; 0 = off)
+    actor_input: str = "feat"  # what pi reads of s and g: 'feat' = [h, z] (Dreamer), 'obs' = the world model's decoded observation of each (ours; Actor)
     mixture: int = 1  # Gaussian components of pi before the tanh (ours; 1 = Dreamer's tanh-normal): a clone of D_body's mixed snapshots may need more than one mode (Actor)
     bc_awr: float = 0.0  # beta of advantage-weighted cloning: bc_loss weighs each action by exp(beta * its standardised advantage) (ours; 0 = plain cloning, kept: beta 1 lost 9.3 points on the stickman, docs/experiments.md)
 
 
 REWARDS = ("distance", "feature")  # the values of ActorCriticConfig.reward
+ACTOR_INPUTS = ("feat", "obs")  # the values of ActorCriticConfig.actor_input
 
 PRESETS = {
     "smoke": dict(units=16, actor_layers=2, critic_layers=2, horizon=5, starts=32),
@@ -104,25 +106,41 @@ class Actor(nn.Module):
     can carry actions of several modes (push up one way, or the other, or stay down); a single Gaussian's mean
     averages them, a mixture's mode picks one. Acting deterministically, the mixture takes the mean of its most
     probable component; a sample picks a component k ~ Cat(w), then u = mean_k + std_k eps, reparameterised within
-    the component (the component's choice passes no gradient to Eq. 4's actor loss; its log-probability does)."""
+    the component (the component's choice passes no gradient to Eq. 4's actor loss; its log-probability does).
 
-    def __init__(self, cfg, feat_dim, goal_dim, action_dim):
+    What pi reads (cfg.actor_input). 'feat' is [h, z] of s and of g, as Dreamer's actor. 'obs' (ours, state
+    observations): the world model's decoded observation of each, decoder(s) and decoder(g), as DistanceNet's 'obs'.
+    Why: h_t = GRU(h_{t-1}, [z_{t-1}, a_{t-1}]) holds the previous action, and a clone that sees it can predict a_t from
+    a_{t-1} (the copycat shortcut of cloning from histories: Wen et al. 2020; de Haan et al. 2019), which fits D_body and
+    fails in closed loop; the decoded state vector (the body's pose and velocities) is what the task needs and holds no
+    action. The decoder stays the world model's (trained by Eq. 2 only): pi reads it with its parameters detached, so
+    gradients pass through it to its input (phase 2's goal) and never to its weights."""
+
+    def __init__(self, cfg, feat_dim, goal_dim, action_dim, decoder=None):
         super().__init__()
         self.cfg, self.goal_dim, self.action_dim = cfg, goal_dim, action_dim
         K = cfg.mixture
+        assert cfg.actor_input in ACTOR_INPUTS, cfg.actor_input
+        if cfg.actor_input == "obs":
+            assert isinstance(decoder, nn.Sequential) and goal_dim == feat_dim, "--ac-actor-input obs: the state decoder, goals that are states"
+            weights = lambda: {k: v.detach() for k, v in decoder.named_parameters()}
+            self.embed = lambda x: torch.func.functional_call(decoder, weights(), (x,))
+            feat_dim = goal_dim = decoder[-1].out_features
+        else:
+            self.embed = lambda x: x
         self.net = mlp(feat_dim + goal_dim, cfg.units, 2 * action_dim * K + (K if K > 1 else 0), cfg.actor_layers)
 
     def goal_input(self, goal):
         """The goal's share of the first layer, W_g g + b: (N, G) or (1, G) -> (N, units). It is the same at every
         imagined step, so rollout computes it once (the first layer reads [feat, goal]: W [f; g] + b = W_f f + W_g g + b)."""
         assert goal.shape[-1] == self.goal_dim and goal.dim() == 2, goal.shape
-        return goal_share(self.net[0], goal)
+        return goal_share(self.net[0], self.embed(goal))
 
     def _heads(self, feat, goal, goal_in):
         """The network's raw output on [feat, goal] -> (N, out)."""
         assert feat.dim() == 2, feat.shape
         goal_in = self.goal_input(goal) if goal_in is None else goal_in
-        return self.net[1:](feat_share(self.net[0], feat) + goal_in)
+        return self.net[1:](feat_share(self.net[0], self.embed(feat)) + goal_in)
 
     def _bounded(self, mean, std):
         cfg = self.cfg

@@ -79,7 +79,7 @@ def add_config_flags(parser):
     """One flag per field of each component's config (default None: 'not given', so presets apply)."""
     for name, (cls, presets, prefix) in COMPONENTS.items():
         for field in dataclasses.fields(cls):
-            choices = tuple(presets) if field.name == "preset" else policy.REWARDS if (name, field.name) == ("ac", "reward") else None
+            choices = {("train", "preset"): tuple(presets), ("ac", "reward"): policy.REWARDS, ("ac", "actor_input"): policy.ACTOR_INPUTS}.get((name, field.name))
             parser.add_argument("--" + prefix + field.name.replace("_", "-"), dest=f"{name}.{field.name}", type=type(field.default),
                                 default=None, choices=choices, metavar=None if choices else type(field.default).__name__.upper(),
                                 help=f"{cls.__name__}.{field.name} (default {field.default!r}, or the preset's)")
@@ -117,11 +117,13 @@ def build_models(cfgs, obs_shape, action_dim, p_dim, device):
     wm = world_model.WorldModel(cfgs["wm"], obs_shape, action_dim)
     if cfgs["dist"].input == "obs" and cfgs["wm"].obs != "state":
         raise ValueError("--dist-input obs reads decoded state vectors: with --obs pixels pass --dist-input feat")
+    if cfgs["ac"].actor_input == "obs" and cfgs["wm"].obs != "state":
+        raise ValueError("--ac-actor-input obs reads decoded state vectors: with --obs pixels pass --ac-actor-input feat")
     models = {
         "world_model": wm,
         "goal_vae": goal_vae.GoalVAE(cfgs["goal"], p_dim, cfgs["wm"].deter, cfgs["wm"].stoch),
         "dist_net": distance.DistanceNet(cfgs["dist"], wm.feat_dim, wm.decoder if cfgs["dist"].input == "obs" else None),
-        "actor": policy.Actor(cfgs["ac"], wm.feat_dim, wm.feat_dim, action_dim),
+        "actor": policy.Actor(cfgs["ac"], wm.feat_dim, wm.feat_dim, action_dim, wm.decoder),
         "return_norm": policy.ReturnNorm(cfgs["ac"].return_norm_decay),
     }
     models["critic"], models["slow_critic"] = policy.make_critics(cfgs["ac"], wm.feat_dim, wm.feat_dim)
@@ -390,7 +392,7 @@ def polish(models, cfgs, data, device):
     with torch.random.fork_rng(devices=[]), torch.no_grad():
         torch.manual_seed(tc.seed + 1)
         if ac.bc_polish_fresh:
-            models["actor"] = policy.Actor(ac, wm.feat_dim, wm.feat_dim, data.data["action"].shape[-1]).to(device)
+            models["actor"] = policy.Actor(ac, wm.feat_dim, wm.feat_dim, data.data["action"].shape[-1], wm.decoder).to(device)
         for _ in range(min(ac.bc_polish_batches, ac.bc_polish)):
             b = data.sample(wc.batch, rng, device)
             post, _ = wm.observe(b[wc.obs], b["action"], b["is_first"])

@@ -87,6 +87,24 @@ def test_a_mixture_clone_picks_a_mode_where_one_gaussian_averages_two():
     assert abs(abs(modes[2]) - 0.8) < 0.1, modes
 
 
+def test_an_actor_on_decoded_observations_reads_them_alone_and_leaves_the_decoder_untouched():
+    """cfg.actor_input 'obs': pi is the MLP on [decoder(s), decoder(g)] (the action depends on s only through what the
+    decoder reads of it); its loss gives the decoder's weights no gradient and its input (the goal, in phase 2) one."""
+    torch.manual_seed(0)
+    wm = W.WorldModel(W.WorldModelConfig(**W.PRESETS["smoke"]), 5, 2)
+    cfg = P.ActorCriticConfig(**P.PRESETS["smoke"], actor_input="obs")
+    actor = P.Actor(cfg, wm.feat_dim, wm.feat_dim, 2, wm.decoder)
+    assert actor.net[0].in_features == 2 * 5
+    feat, goal = torch.randn(7, wm.feat_dim), torch.randn(7, wm.feat_dim, requires_grad=True)
+    mean, std = actor.distribution(feat, goal)
+    raw_mean, _ = actor.net(torch.cat([wm.decoder(feat), wm.decoder(goal)], -1)).chunk(2, -1)
+    assert torch.allclose(mean, cfg.mean_scale * torch.tanh(raw_mean / cfg.mean_scale), atol=1e-6)
+    wm.zero_grad(set_to_none=True)
+    (mean.sum() + std.sum()).backward()
+    assert all(p.grad is None for p in wm.decoder.parameters())
+    assert goal.grad.abs().sum() > 0
+
+
 def make_agents(goal_dim=None):
     cfg = P.ActorCriticConfig(**P.PRESETS["smoke"])
     world_model = W.WorldModel(W.WorldModelConfig(**W.PRESETS["smoke"]), 5, 2)

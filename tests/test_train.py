@@ -204,6 +204,20 @@ def test_a_mixture_actor_trains_with_eq4_and_cloning_and_loads_back(smoke_data, 
     assert loaded["ac"].mixture == 3 and actor.net[-1].out_features == 3 + 3 * 2 * actor.action_dim
 
 
+def test_an_actor_on_decoded_observations_trains_and_is_refused_on_pixels(smoke_data, tmp_path):
+    """--ac-actor-input obs: the run trains (Eq. 4 and cloning) and loads back into an actor whose first layer reads two
+    decoded observations; with --obs pixels it stops with one line naming the fix."""
+    cfgs = train.resolve_configs(train_args(data=smoke_data, **{"ac.bc": 1.0, "ac.actor_input": "obs"}), "smoke")
+    run = train.train(cfgs, str(tmp_path / "obs_actor"), resume=False)
+    last = [json.loads(l) for l in open(os.path.join(run, "metrics.jsonl"))][-1]
+    assert np.isfinite(last["actor_loss"]) and np.isfinite(last["bc_loss"])
+    loaded, models, _ = train.load_run(run)
+    assert loaded["ac"].actor_input == "obs" and models["actor"].net[0].in_features == 2 * models["world_model"].obs_shape[0]
+    pixels = train.resolve_configs(train_args(data=smoke_data, **{"wm.obs": "pixels", "dist.input": "feat", "ac.actor_input": "obs"}), "smoke")
+    with pytest.raises(ValueError, match="--ac-actor-input obs reads decoded state vectors: with --obs pixels pass --ac-actor-input feat"):
+        train.build_models(pixels, (64, 64, 3), 6, 64, "cpu")
+
+
 def test_uncertainty_penalty_trains_its_ensemble_and_resumes(smoke_run, smoke_data, tmp_path):
     """--ac-uncertainty: the run keeps a policy.Disagreement trained every update (Adam counts one step per update),
     logs the penalty's u, and resumes with it; runs without the flag have no ensemble."""
