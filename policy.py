@@ -56,8 +56,8 @@ class ActorCriticConfig:
     bc_polish_fresh: int = 0  # 1: those steps train a freshly initialised actor instead of the trained one (ours; train.polish)
     bc_polish_batches: int = 250  # D_body batches whose posterior states the polish computes once and cycles (ours; train.polish)
     uncertainty: float = 0.0  # lambda of the penalty r^goal - lambda u on imagined steps, u the disagreement of an ensemble of next-observation predictors in units of its mean on D_body (ours, Disagreement; MOPO, Yu et al. 2020; 0 = off)
-    actor_input: str = "feat"  # what pi reads of s and g: 'feat' = [h, z] (Dreamer), 'obs' = the world model's decoded observation of each (ours; Actor)
-    mixture: int = 1  # Gaussian components of pi before the tanh (ours; 1 = Dreamer's tanh-normal): a clone of D_body's mixed snapshots may need more than one mode (Actor)
+    actor_input: str = "feat"  # what pi reads of s and g: 'feat' = [h, z] (Dreamer), 'obs' = the world model's decoded observation of each (ours, Actor; kept 'feat': 'obs' lost 14.4 points in the stickman's cloning probe, docs/experiments.md)
+    mixture: int = 1  # Gaussian components of pi before the tanh (ours, Actor; 1 = Dreamer's tanh-normal, kept: 5 lost 18.8 points in the stickman's cloning probe, docs/experiments.md)
     bc_awr: float = 0.0  # beta of advantage-weighted cloning: bc_loss weighs each action by exp(beta * its standardised advantage) (ours; 0 = plain cloning, kept: beta 1 lost 9.3 points on the stickman, docs/experiments.md)
 
 
@@ -106,7 +106,8 @@ class Actor(nn.Module):
     can carry actions of several modes (push up one way, or the other, or stay down); a single Gaussian's mean
     averages them, a mixture's mode picks one. Acting deterministically, the mixture takes the mean of its most
     probable component; a sample picks a component k ~ Cat(w), then u = mean_k + std_k eps, reparameterised within
-    the component (the component's choice passes no gradient to Eq. 4's actor loss; its log-probability does).
+    the component (the component's choice passes no gradient to Eq. 4's actor loss; its log-probability does). Measured,
+    the mixture clones the data better and reaches goals worse (docs/experiments.md); the default stays one Gaussian.
 
     What pi reads (cfg.actor_input). 'feat' is [h, z] of s and of g, as Dreamer's actor. 'obs' (ours, state
     observations): the world model's decoded observation of each, decoder(s) and decoder(g), as DistanceNet's 'obs'.
@@ -114,7 +115,8 @@ class Actor(nn.Module):
     a_{t-1} (the copycat shortcut of cloning from histories: Wen et al. 2020; de Haan et al. 2019), which fits D_body and
     fails in closed loop; the decoded state vector (the body's pose and velocities) is what the task needs and holds no
     action. The decoder stays the world model's (trained by Eq. 2 only): pi reads it with its parameters detached, so
-    gradients pass through it to its input (phase 2's goal) and never to its weights."""
+    gradients pass through it to its input (phase 2's goal) and never to its weights. Measured, 'obs' loses the gaits
+    (docs/experiments.md): h carries more than the copycat's shortcut; the default stays 'feat'."""
 
     def __init__(self, cfg, feat_dim, goal_dim, action_dim, decoder=None):
         super().__init__()
