@@ -57,7 +57,7 @@ class ActorCriticConfig:
     bc_polish_batches: int = 250  # D_body batches whose posterior states the polish computes once and cycles (ours; train.polish)
     uncertainty: float = 0.0  # lambda of the penalty r^goal - lambda u on imagined steps, u the disagreement of an ensemble of next-observation predictors in units of its mean on D_body (ours, Disagreement; MOPO, Yu et al. 2020; 0 = off)
     actor_input: str = "feat"  # what pi reads of s and g: 'feat' = [h, z] (Dreamer), 'obs' = the world model's decoded observation of each (ours, Actor; kept 'feat': 'obs' lost 14.4 points in the stickman's cloning probe, docs/experiments.md)
-    mixture: int = 1  # Gaussian components of pi before the tanh (ours, Actor; 1 = Dreamer's tanh-normal, kept: 5 lost 18.8 points in the stickman's cloning probe, docs/experiments.md)
+    mixture: int = 1  # Gaussian components of pi before the tanh (ours, Actor; 1 = Dreamer's tanh-normal, kept: 5 lost 19.5 points in the stickman's cloning probe, docs/experiments.md)
     bc_awr: float = 0.0  # beta of advantage-weighted cloning: bc_loss weighs each action by exp(beta * its standardised advantage) (ours; 0 = plain cloning, kept: beta 1 lost 9.3 points on the stickman, docs/experiments.md)
 
 
