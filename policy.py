@@ -100,23 +100,13 @@ def tanh_gaussian_log_prob(u, mean, std):
 
 
 class Actor(nn.Module):
-    """pi(a | s, g): a tanh-squashed Gaussian (Dreamer V1's tanh-normal) on [feat, goal]; with cfg.mixture = K > 1 a
-    tanh-squashed mixture of K Gaussians (ours; a mixture density network, Bishop 1994). Why a mixture: the actor is
-    mostly a hindsight clone of D_body, whose task episodes are snapshots of learning histories, so one state and goal
-    can carry actions of several modes (push up one way, or the other, or stay down); a single Gaussian's mean
-    averages them, a mixture's mode picks one. Acting deterministically, the mixture takes the mean of its most
-    probable component; a sample picks a component k ~ Cat(w), then u = mean_k + std_k eps, reparameterised within
-    the component (the component's choice passes no gradient to Eq. 4's actor loss; its log-probability does). Measured,
-    the mixture clones the data better and reaches goals worse (docs/experiments.md); the default stays one Gaussian.
-
-    What pi reads (cfg.actor_input). 'feat' is [h, z] of s and of g, as Dreamer's actor. 'obs' (ours, state
-    observations): the world model's decoded observation of each, decoder(s) and decoder(g), as DistanceNet's 'obs'.
-    Why: h_t = GRU(h_{t-1}, [z_{t-1}, a_{t-1}]) holds the previous action, and a clone that sees it can predict a_t from
-    a_{t-1} (the copycat shortcut of cloning from histories: Wen et al. 2020; de Haan et al. 2019), which fits D_body and
-    fails in closed loop; the decoded state vector (the body's pose and velocities) is what the task needs and holds no
-    action. The decoder stays the world model's (trained by Eq. 2 only): pi reads it with its parameters detached, so
-    gradients pass through it to its input (phase 2's goal) and never to its weights. Measured, 'obs' loses the gaits
-    (docs/experiments.md): h carries more than the copycat's shortcut; the default stays 'feat'."""
+    """pi(a | s, g): a tanh-squashed Gaussian (Dreamer V1's tanh-normal) on [feat, goal]. Two options of ours, measured
+    and not kept (docs/experiments.md): cfg.mixture = K > 1, a tanh-squashed mixture of K Gaussians (a mixture density
+    network, Bishop 1994), so that a clone of D_body's mixed snapshots need not average their modes; it acts with the
+    mean of its most probable component, samples k ~ Cat(w) then u = mean_k + std_k eps (reparameterised within the
+    component). cfg.actor_input 'obs': pi reads the world model's decoded observation of s and of g instead of [h, z],
+    whose h holds a_{t-1} (the copycat shortcut of cloning from histories, Wen et al. 2020); the decoder's weights are
+    read detached, so gradients reach its input (phase 2's goal) and never its weights."""
 
     def __init__(self, cfg, feat_dim, goal_dim, action_dim, decoder=None):
         super().__init__()
@@ -138,76 +128,61 @@ class Actor(nn.Module):
         assert goal.shape[-1] == self.goal_dim and goal.dim() == 2, goal.shape
         return goal_share(self.net[0], self.embed(goal))
 
-    def _heads(self, feat, goal, goal_in):
-        """The network's raw output on [feat, goal] -> (N, out)."""
+    def components(self, feat, goal, goal_in=None):
+        """The Gaussians before the tanh: feat (N, F), goal (N, G) or (1, G) -> logits (N, K) of their weights (None for
+        one Gaussian), mean, std (N, K, A). goal_in: goal_input(goal) when already computed."""
+        cfg, K = self.cfg, self.cfg.mixture
         assert feat.dim() == 2, feat.shape
         goal_in = self.goal_input(goal) if goal_in is None else goal_in
-        return self.net[1:](feat_share(self.net[0], self.embed(feat)) + goal_in)
-
-    def _bounded(self, mean, std):
-        cfg = self.cfg
+        out = self.net[1:](feat_share(self.net[0], self.embed(feat)) + goal_in)
+        logits, out = (out[:, :K], out[:, K:]) if K > 1 else (None, out)
+        mean, std = out.unflatten(-1, (K, 2 * self.action_dim)).chunk(2, -1)
         mean = cfg.mean_scale * torch.tanh(mean / cfg.mean_scale)
         std = (cfg.max_std - cfg.min_std) * torch.sigmoid(std + 2.0) + cfg.min_std  # Dreamer V3's bounded std
-        return mean, std
+        return logits, mean, std
 
-    def distribution(self, feat, goal, goal_in=None):
-        """The Gaussian before the tanh: feat (N, F), goal (N, G) or (1, G) -> mean, std (N, A); for a mixture, those
-        of its most probable component. goal_in: goal_input(goal) when already computed."""
-        if self.cfg.mixture > 1:
-            logits, mean, std = self.components(feat, goal, goal_in)
-            return self._pick(logits.argmax(-1), mean, std)
-        return self._bounded(*self._heads(feat, goal, goal_in).chunk(2, -1))
-
-    def components(self, feat, goal, goal_in=None):
-        """The mixture (cfg.mixture = K > 1): logits (N, K) of the weights w, mean, std (N, K, A) of each Gaussian."""
-        K, A = self.cfg.mixture, self.action_dim
-        out = self._heads(feat, goal, goal_in)
-        mean, std = out[:, K:].unflatten(-1, (K, 2 * A)).chunk(2, -1)
-        return out[:, :K], *self._bounded(mean, std)
-
-    def _pick(self, k, mean, std):
-        """Component k (N,) of each row: mean, std (N, K, A) -> (N, A) each."""
+    def _choose(self, logits, mean, std, sample):
+        """One component's mean, std (N, A): drawn by its weight if `sample`, else the most probable; the only one for
+        a single Gaussian (no random numbers drawn)."""
+        if logits is None:
+            return mean[:, 0], std[:, 0]
+        k = torch.multinomial(logits.detach().softmax(-1), 1)[:, 0] if sample else logits.argmax(-1)
         index = k[:, None, None].expand(-1, 1, self.action_dim)
         return mean.gather(1, index)[:, 0], std.gather(1, index)[:, 0]
 
     @staticmethod
-    def _mixture_log_prob(u, logits, mean, std):
-        """log sum_k w_k N(u; mean_k, std_k) minus the tanh Jacobian: u (N, A), logits (N, K), mean, std (N, K, A) -> (N,)."""
+    def _log_prob(u, logits, mean, std):
+        """log pi(tanh(u)) of pre-tanh u (N, A) -> (N,): for a mixture, log sum_k w_k N(u; mean_k, std_k) minus the
+        tanh Jacobian."""
+        if logits is None:
+            return tanh_gaussian_log_prob(u, mean[:, 0], std[:, 0])
         jacobian = (2 * (math.log(2) - u - F.softplus(-2 * u))).sum(-1)  # log(1 - tanh(u)^2) summed over actions
         per_component = tanh_gaussian_log_prob(u[:, None], mean, std) + jacobian[:, None]  # (N, K): log N(u; mean_k, std_k)
         return torch.logsumexp(logits.log_softmax(-1) + per_component, -1) - jacobian
 
+    def distribution(self, feat, goal, goal_in=None):
+        """The Gaussian before the tanh (a mixture's most probable component): -> mean, std (N, A)."""
+        return self._choose(*self.components(feat, goal, goal_in), sample=False)
+
     def log_prob(self, feat, goal, u, goal_in=None):
         """log pi(tanh(u) | s, g) of pre-tanh actions u (N, A) -> (N,)."""
-        if self.cfg.mixture == 1:
-            return tanh_gaussian_log_prob(u, *self.distribution(feat, goal, goal_in))
-        return self._mixture_log_prob(u, *self.components(feat, goal, goal_in))
+        return self._log_prob(u, *self.components(feat, goal, goal_in))
 
     def forward(self, feat, goal, deterministic=False, goal_in=None):
         """feat (N, F), goal (N, G) -> action (N, A) in [-1, 1], log pi(action | s, g) (N,) (None if deterministic)."""
-        if deterministic:
-            return torch.tanh(self.distribution(feat, goal, goal_in)[0]), None
-        if self.cfg.mixture == 1:
-            mean, std = self.distribution(feat, goal, goal_in)
-            u = mean + std * torch.randn_like(mean)  # reparameterised: the actor loss differentiates through the sample
-            return torch.tanh(u), tanh_gaussian_log_prob(u, mean, std)
         logits, mean, std = self.components(feat, goal, goal_in)
-        k_mean, k_std = self._pick(torch.multinomial(logits.detach().softmax(-1), 1)[:, 0], mean, std)  # k ~ Cat(w)
-        u = k_mean + k_std * torch.randn_like(k_mean)  # reparameterised within component k
-        return torch.tanh(u), self._mixture_log_prob(u, logits, mean, std)
+        k_mean, k_std = self._choose(logits, mean, std, sample=not deterministic)
+        if deterministic:
+            return torch.tanh(k_mean), None
+        u = k_mean + k_std * torch.randn_like(k_mean)  # reparameterised: the actor loss differentiates through the sample
+        return torch.tanh(u), self._log_prob(u, logits, mean, std)
 
     def act(self, feat, goal, temperature=0.0):
         """How pi acts in the real environment (ours): a = tanh(mean + temperature std eps), eps ~ N(0, I), of the one
         Gaussian or of a component drawn by its weight. 0 is the tanh of the (most probable component's) mean, Dreamer's
         evaluation, and draws no random numbers; 1 is a sample of pi. (N, F), (N, G) -> (N, A)."""
-        if not temperature:
-            return torch.tanh(self.distribution(feat, goal)[0])
-        if self.cfg.mixture == 1:
-            mean, std = self.distribution(feat, goal)
-        else:
-            logits, mean, std = self.components(feat, goal)
-            mean, std = self._pick(torch.multinomial(logits.softmax(-1), 1)[:, 0], mean, std)
-        return torch.tanh(mean + temperature * std * torch.randn_like(mean))
+        mean, std = self._choose(*self.components(feat, goal), sample=bool(temperature))
+        return torch.tanh(mean + temperature * std * torch.randn_like(mean) if temperature else mean)
 
 
 class Critic(nn.Module):
