@@ -236,6 +236,12 @@ def restore(ckpt_path, config, models, optims, encoder, device):
     for name, model in models.items():
         model.load_state_dict(ckpt["models"][name])
     models["actor"].load_state_dict(ckpt.get("actor_unpolished", ckpt["models"]["actor"]))  # training goes on from the unpolished actor
+    if "optims" not in ckpt:  # a shipped agent (rundir.export_agent: weights only) copied into run_dir: trained on from its
+        # weights (its polished actor) with fresh Adam moments and RNG streams of [seed, update] (ours; training longer
+        # than it was shipped, docs/experiments.md)
+        print(f"resumed {ckpt_path} at update {ckpt['step']} from its weights alone (an exported agent): fresh optimisers")
+        torch.manual_seed(config["train"]["seed"] * 1_000_003 + ckpt["step"])
+        return ckpt["step"], np.random.default_rng([config["train"]["seed"], ckpt["step"]])
     for name, opt in optims.items():
         opt.load_state_dict(ckpt["optims"][name])
     torch.set_rng_state(ckpt["torch_rng"].cpu())  # load_checkpoint maps every tensor to `device`; the CPU generator needs a CPU tensor
@@ -413,7 +419,7 @@ def polish(models, cfgs, data, device):
 
 def main():
     parser = argparse.ArgumentParser(description="Phase 1: pretrain the world model, goal VAE, distance and multi-task policy on D_body.")
-    parser.add_argument("--resume", action="store_true", help="continue runs/<name>/checkpoint.pt")
+    parser.add_argument("--resume", action="store_true", help="continue runs/<name>/checkpoint.pt (in a copy of a shipped agent: train on from its weights, fresh optimisers)")
     parser.add_argument("--evaluate", action="store_true", help="only the goal-reaching benchmark (evaluate.py) of the trained run")
     parser.add_argument("--obs", dest="wm.obs", choices=("state", "pixels"), default=None, help="world-model input (default: the preset's)")
     parser.add_argument("--run-dir", default=None, help="default runs/<env>_<obs>_<preset>_s<seed>")

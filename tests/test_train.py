@@ -177,6 +177,25 @@ def test_exported_agent_loads_weights_only_and_acts_like_its_run(smoke_run, tmp_
     assert train.resolve_run("walker", "cpu") == train.default_run_dir("walker", "cpu")
 
 
+def test_a_copy_of_an_exported_agent_trains_on_from_its_weights(smoke_run, smoke_data, tmp_path):
+    """--resume in a folder holding a shipped agent (no optimiser state): training goes on from its weights, its step
+    count, with fresh Adam moments (their step counters restart), and the result resumes like any run."""
+    run = str(tmp_path / "longer")
+    rundir.export_agent(smoke_run, run)
+    shipped = torch.load(os.path.join(run, "checkpoint.pt"), weights_only=True)
+    steps = train.TRAIN_PRESETS["smoke"]["steps"]
+    train.train(train.resolve_configs(train_args(data=smoke_data, steps=steps + 2), "smoke"), run, resume=True)
+    ckpt = torch.load(os.path.join(run, "checkpoint.pt"), weights_only=True)
+    assert ckpt["step"] == steps + 2 and "optims" in ckpt
+    assert {int(s["step"]) for s in ckpt["optims"]["world_model"]["state"].values()} == {2}  # fresh Adam, 2 updates
+    change = [(ckpt["models"]["world_model"][k] - a).abs().max().item() for k, a in shipped["models"]["world_model"].items()]
+    lr = train.resolve_configs(train_args(), "smoke")["wm"].lr
+    assert 0 < max(change) <= 2 * 2 * lr  # trained on from the shipped weights: two Adam steps (each <~ lr) away, not re-initialised
+    assert [json.loads(l)["step"] for l in open(os.path.join(run, "metrics.jsonl"))] == [steps + 2]
+    train.train(train.resolve_configs(train_args(data=smoke_data, steps=steps + 4), "smoke"), run, resume=True)
+    assert torch.load(os.path.join(run, "checkpoint.pt"), weights_only=True)["step"] == steps + 4
+
+
 def test_bc_steps_are_extra_actor_steps_and_the_feature_reward_trains(smoke_data, tmp_path):
     """--ac-bc-steps 3: each Eq. 4 update of the actor is followed by 2 steps on bc_loss alone (Adam counts 3 per update);
     --ac-reward feature: the imagined reward is a cosine, in [-1, 1]; the log has the gradient norm of each term."""
