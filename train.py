@@ -237,7 +237,7 @@ def restore(ckpt_path, config, models, optims, encoder, device):
         model.load_state_dict(ckpt["models"][name])
     models["actor"].load_state_dict(ckpt.get("actor_unpolished", ckpt["models"]["actor"]))  # training goes on from the unpolished actor
     if "optims" not in ckpt:  # a shipped agent (rundir.export_agent: weights only) copied into run_dir: trained on from its
-        # weights (its polished actor) with fresh Adam moments and RNG streams of [seed, update] (ours; training longer
+        # weights (its polished actor) with fresh Adam moments and RNGs seeded from (seed, update) (ours; training longer
         # than it was shipped, docs/experiments.md)
         print(f"resumed {ckpt_path} at update {ckpt['step']} from its weights alone (an exported agent): fresh optimisers")
         torch.manual_seed(config["train"]["seed"] * 1_000_003 + ckpt["step"])
