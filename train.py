@@ -280,12 +280,14 @@ def pretrain(cfgs, run_dir, resume):
         step, rng = restore(ckpt_path, config, models, optims, encoder, device)
     rundir.trim_jsonl(os.path.join(run_dir, "metrics.jsonl"), step)  # rows a killed run logged after its checkpoint
 
-    def save(actor_unpolished=None):
+    def save(actor_unpolished=None, actor_polish_last=None):
         state = {"config": config, "step": step, "rng": rng.bit_generator.state, "torch_rng": torch.get_rng_state(), "encoder": encoder.name,
                  "obs_shape": obs_shape, "action_dim": action_dim, "p_dim": p_dim,
                  "models": {k: m.state_dict() for k, m in models.items()}, "optims": {k: o.state_dict() for k, o in optims.items()}}
         if actor_unpolished is not None:
             state["actor_unpolished"] = actor_unpolished
+        if actor_polish_last is not None:  # --ac-bc-polish-ema: the last polish step's actor, beside the average kept
+            state["actor_polish_last"] = actor_polish_last
         rundir.atomic_write(ckpt_path, lambda f: torch.save(state, f))
         return step
 
@@ -370,8 +372,7 @@ def pretrain(cfgs, run_dir, resume):
     bar.close()
     if ac.bc and ac.bc_polish:
         unpolished = copy.deepcopy(models["actor"].state_dict())
-        polish(models, cfgs, data, device)
-        saved = save(unpolished)
+        saved = save(unpolished, polish(models, cfgs, data, device))
     final_report(run_dir, models, cfgs, held_out, device)
     print(f"wrote {ckpt_path}, {run_dir}/metrics.jsonl")
     return run_dir
@@ -391,7 +392,9 @@ def polish(models, cfgs, data, device):
     world model still moves, and cloning on the final ones raised goal reaching (docs/experiments.md, Phase 1). With
     ac.bc_polish_fresh the actor is first initialised afresh (models["actor"] is replaced). The posterior states of
     ac.bc_polish_batches D_body batches are computed once and cycled, each step with fresh hindsight goals; a fresh
-    Adam at the actor's lr, and RNGs of its own, so that the training's (in the checkpoint) are untouched."""
+    Adam at the actor's lr, and RNGs of its own, so that the training's (in the checkpoint) are untouched. With
+    ac.bc_polish_ema the actor kept is the moving average of the steps' weights; returns the last step's state_dict
+    then (None otherwise)."""
     wc, ac, tc = cfgs["wm"], cfgs["ac"], cfgs["train"]
     wm, vae = models["world_model"], models["goal_vae"]
     rng, cache = np.random.default_rng([tc.seed, 1]), []
@@ -405,6 +408,7 @@ def polish(models, cfgs, data, device):
             cache.append((wm.feat(post), vae.goal(b["p"]), b["action"], vae.goal(b["p_last"])))
     actor = models["actor"]
     opt = torch.optim.Adam(actor.parameters(), lr=ac.actor_lr)
+    average = copy.deepcopy(actor).requires_grad_(False) if ac.bc_polish_ema else None
     weights = weigh(models, ac)
     with torch.random.fork_rng(devices=[]):
         torch.manual_seed(tc.seed + 2)
@@ -414,7 +418,14 @@ def polish(models, cfgs, data, device):
             loss.backward()
             torch.nn.utils.clip_grad_norm_(actor.parameters(), ac.grad_clip)
             opt.step()
+            if average is not None:
+                policy.ema_update(average, actor, 1 - ac.bc_polish_ema)
     print(f"polished the actor: {ac.bc_polish} cloning steps on the final world model, bc_loss {m['bc_loss']:.3f}")
+    if average is None:
+        return None
+    last = copy.deepcopy(actor.state_dict())
+    actor.load_state_dict(average.state_dict())
+    return last
 
 
 def main():
