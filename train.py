@@ -280,14 +280,13 @@ def pretrain(cfgs, run_dir, resume):
         step, rng = restore(ckpt_path, config, models, optims, encoder, device)
     rundir.trim_jsonl(os.path.join(run_dir, "metrics.jsonl"), step)  # rows a killed run logged after its checkpoint
 
-    def save(actor_unpolished=None, actor_polish_last=None):
+    def save(**actors):
+        """actors: extra actor state_dicts the checkpoint keeps beside the models (None: not kept): actor_unpolished,
+        and with --ac-bc-polish-ema actor_polish_last, the last polish step's beside the average."""
         state = {"config": config, "step": step, "rng": rng.bit_generator.state, "torch_rng": torch.get_rng_state(), "encoder": encoder.name,
                  "obs_shape": obs_shape, "action_dim": action_dim, "p_dim": p_dim,
-                 "models": {k: m.state_dict() for k, m in models.items()}, "optims": {k: o.state_dict() for k, o in optims.items()}}
-        if actor_unpolished is not None:
-            state["actor_unpolished"] = actor_unpolished
-        if actor_polish_last is not None:  # --ac-bc-polish-ema: the last polish step's actor, beside the average kept
-            state["actor_polish_last"] = actor_polish_last
+                 "models": {k: m.state_dict() for k, m in models.items()}, "optims": {k: o.state_dict() for k, o in optims.items()},
+                 **{k: v for k, v in actors.items() if v is not None}}
         rundir.atomic_write(ckpt_path, lambda f: torch.save(state, f))
         return step
 
@@ -372,7 +371,7 @@ def pretrain(cfgs, run_dir, resume):
     bar.close()
     if ac.bc and ac.bc_polish:
         unpolished = copy.deepcopy(models["actor"].state_dict())
-        saved = save(unpolished, polish(models, cfgs, data, device))
+        saved = save(actor_unpolished=unpolished, actor_polish_last=polish(models, cfgs, data, device))
     final_report(run_dir, models, cfgs, held_out, device)
     print(f"wrote {ckpt_path}, {run_dir}/metrics.jsonl")
     return run_dir
