@@ -186,6 +186,8 @@ def prepare_data(cfgs):
     folder, want = os.path.join(tc.data, tc.env), collect.preset_config(tc.preset)
     complete = os.path.join(folder, collect.COMPLETE)
     has = json.load(open(complete)) if os.path.exists(complete) else {}  # missing, or a collection killed half-way
+    if has:  # a field added to CollectConfig since that collection reads as its default
+        has = {**dataclasses.asdict(collect.CollectConfig()), **has}
     counts = ("explore_episodes", "task_episodes")
     same_kind = all(has.get(k) == v for k, v in dataclasses.asdict(want).items() if k not in counts)
     # a smaller D_body of the same recipe (the preset's older, smaller default) grows; another kind passed by --data

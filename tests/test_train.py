@@ -97,11 +97,14 @@ def test_cover_edges_samples_an_episodes_first_steps_as_often_as_its_middle():
 
 
 def test_a_smaller_older_d_body_grows_to_the_preset_before_training(smoke_data, tmp_path, monkeypatch):
-    """A D_body collected when the preset asked for fewer episodes per task is completed, not trained on as it is;
-    what exists is kept."""
+    """A D_body collected when the preset asked for fewer episodes per task, by code older than a CollectConfig field,
+    is completed, not trained on as it is; what exists is kept."""
     root = str(tmp_path / "data")
     shutil.copytree(smoke_data, root)
     folder = os.path.join(root, "walker")
+    complete = os.path.join(folder, collect.COMPLETE)
+    older = {k: v for k, v in json.load(open(complete)).items() if k != "up_first"}  # written before up_first existed
+    open(complete, "w").write(json.dumps(older))
     before = {n: os.path.getmtime(os.path.join(folder, n)) for n in os.listdir(folder) if n.endswith(".npz")}
     monkeypatch.setitem(collect.PRESETS, "smoke", {**collect.PRESETS["smoke"], "task_episodes": 2})
     cfgs = train.resolve_configs(train_args(data=root), "smoke")
