@@ -159,6 +159,12 @@ def posture(body, torso_z, torso_zz):
     return (3 * standing + (1 + torso_zz) / 2) / 4
 
 
+
+def observed_posture(body, obs):
+    """posture of state observations (..., obs_dim): torso zz at obs[0], the torso height at obs[-1 - nv]."""
+    height = -1 - make_env(body, "stand").physics.model.nv
+    return posture(body, obs[..., height], obs[..., 0])
+
 def task_reward(physics, body, task):
     """The shared reward of one control step (module docstring); equals dm_control's walker for stand/walk/run."""
     height = physics.named.data.xpos["torso", "z"]

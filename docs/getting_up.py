@@ -63,17 +63,11 @@ def demo_goals(cfgs, body):
     return {task: np.stack([d["p"][-1] for d in collect.load_folder(folder(task), ("p",))]) for task in evaluate.BODY_TASKS}
 
 
-def observed_posture(body, obs):
-    """envs.posture of state observations (..., obs_dim): torso zz at obs[0], the torso height at obs[-1 - nv]."""
-    height = -1 - envs.make_env(body, "stand").physics.model.nv
-    return envs.posture(body, obs[..., height], obs[..., 0])
-
-
 def decoded_posture(models, body, p_goals):
     """The posture the world model's decoder reads in the goals q(s | p): is a stand goal a body standing?"""
     with torch.no_grad():
         obs = models["world_model"].decode(models["goal_vae"].goal(torch.as_tensor(p_goals))[:, None])[:, 0].numpy()
-    return observed_posture(body, obs).mean()
+    return envs.observed_posture(body, obs).mean()
 
 
 def agent_rows(models, cfgs, body, goals, other_goals=False):
@@ -90,7 +84,7 @@ def data_episodes(folder, body, task, keys=("state",)):
     episodes = [collect.load_episode(path, keys) for path in sorted(glob.glob(os.path.join(folder, f"{task}_*.npz")))]
     if not episodes:
         raise FileNotFoundError(f"no {task} episodes in {folder}: collect them with `python collect.py --env {body}`")
-    return episodes, [observed_posture(body, e["state"]) for e in episodes]
+    return episodes, [envs.observed_posture(body, e["state"]) for e in episodes]
 
 
 def data_rows(folder, body):
