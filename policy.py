@@ -24,7 +24,6 @@ import torch
 import torch.nn as nn
 import torch.nn.functional as F
 
-from sac import EnsembleLinear
 from world_model import mlp
 
 
@@ -56,7 +55,7 @@ class ActorCriticConfig:
     bc_polish_fresh: int = 0  # 1: those steps train a freshly initialised actor instead of the trained one (ours; train.polish)
     bc_polish_batches: int = 250  # D_body batches whose posterior states the polish computes once and cycles (ours; train.polish)
     bc_polish_ema: float = 0.0  # decay of an exponential moving average of the actor's weights over the polish steps, kept as the actor in place of the last step's (ours; Polyak and Juditsky 1992; 0 = the last step's, kept: 0.999 moved the stickman +1.2 +- 0.6, 3 seeds, docs/experiments.md)
-    uncertainty: float = 0.0  # lambda of the penalty r^goal - lambda u on imagined steps, u the disagreement of an ensemble of next-observation predictors in units of its mean on D_body (ours, Disagreement; MOPO, Yu et al. 2020; 0 = off)
+    uncertainty: float = 0.0  # lambda of the penalty r^goal - lambda u on imagined steps, u the disagreement of an ensemble of next-observation predictors in units of its mean on D_body (ours, world_model.Disagreement; MOPO, Yu et al. 2020; 0 = off)
     actor_input: str = "feat"  # what pi reads of s and g: 'feat' = [h, z] (Dreamer), 'obs' = the world model's decoded observation of each (ours, Actor; kept 'feat': 'obs' lost 14.4 points in the stickman's cloning probe, docs/experiments.md)
     mixture: int = 1  # Gaussian components of pi before the tanh (ours, Actor; 1 = Dreamer's tanh-normal, kept: 5 lost 19.5 points in the stickman's cloning probe, docs/experiments.md)
     bc_awr: float = 0.0  # beta of advantage-weighted cloning: bc_loss weighs each action by exp(beta * its standardised advantage) (ours; 0 = plain cloning, kept: beta 1 lost 9.3 points on the stickman, docs/experiments.md)
@@ -270,61 +269,6 @@ def sample_goals(post_feat, encoded_goal, start_index, is_first, mix, near, gene
     return torch.where(from_encoder, encoded_goal.flatten(0, 1)[index], post_feat.flatten(0, 1)[index]).detach()
 
 
-class Disagreement(nn.Module):
-    """The world model's uncertainty on an imagined step (ours, --ac-uncertainty; Plan2Explore's ensemble, Sekar et al.
-    2020, as MOPO's penalty, Yu et al. 2020): K MLPs, each predicting the next observation's target (the decoder's,
-    symlog(o_{t+1}), for states; the encoder's e_{t+1} for pixels) from [feat_t, a_t], trained on D_body's posterior
-    transitions. Where the data went they agree; off its support, where Eq. 4 alone learned actions whose outcome the
-    world model predicts wrongly (docs/experiments.md), they need not. u = the variance across members, averaged over
-    the target's dimensions, divided by its running mean on D_body's transitions (`scale`), so that lambda counts in
-    units of what the data shows."""
-
-    members = 5  # Plan2Explore's ensemble size
-    decay = 0.99  # EMA decay of scale
-
-    def __init__(self, feat_dim, action_dim, target_dim, units=128):
-        super().__init__()
-        K = self.members
-        self.net = nn.Sequential(EnsembleLinear(K, feat_dim + action_dim, units), nn.SiLU(), EnsembleLinear(K, units, units), nn.SiLU(),
-                                 EnsembleLinear(K, units, target_dim))
-        self.register_buffer("scale", torch.zeros(()))
-
-    @classmethod
-    def of(cls, wm):
-        """The ensemble for a world model: its feat and action sizes, and the target's."""
-        return cls(wm.feat_dim, wm.action_dim, wm.obs_shape[0] if wm.cfg.obs == "state" else 32 * wm.cfg.cnn_depth)
-
-    @staticmethod
-    def target(wm, obs):
-        """What the members predict of o_t: symlog(o_t) for states, the encoder's e_t for pixels: (B, T, .) -> (B, T, D)."""
-        with torch.no_grad():
-            return wm._target(obs) if wm.cfg.obs == "state" else wm.encode(obs)
-
-    def forward(self, feat, action):
-        """feat (..., F), action (..., A) -> each member's prediction (K, ..., target_dim)."""
-        x = torch.cat([feat, action], -1)
-        shape = x.shape[:-1]
-        x = x.reshape(1, -1, x.shape[-1]).expand(self.members, -1, -1)
-        return self.net(x).reshape(self.members, *shape, -1)
-
-    def disagreement(self, feat, action):
-        """u of each step: (..., F), (..., A) -> (...), in units of scale (1 before the first loss)."""
-        u = self(feat, action).var(0).mean(-1)
-        return u / self.scale if self.scale > 0 else u
-
-    def loss(self, post_feat, action, target, is_first):
-        """Squared error of every member on D_body's transitions s_t, a_t -> target_{t+1} (none across an episode
-        start): post_feat (B, T, F), action (B, T, A) = a_{t-1}, target (B, T, D), is_first (B, T); updates scale."""
-        keep = ~is_first[:, 1:]  # (B, T - 1)
-        pred = self(post_feat[:, :-1].detach(), action[:, 1:])  # (K, B, T - 1, D)
-        err = (pred - target[:, 1:].detach()).pow(2).sum(-1)  # (K, B, T - 1)
-        loss = err[:, keep].mean()
-        with torch.no_grad():
-            u = pred.var(0).mean(-1)[keep].mean()
-            self.scale.copy_(u if self.scale == 0 else self.scale.lerp(u, 1 - self.decay))
-        return loss, {"ensemble_loss": loss.item(), "disagreement_data": u.item()}
-
-
 def rollout(world_model, actor, start, goal, horizon):
     """Imagine `horizon` steps from start states (dict of (N, .), detached here) with pi(a | s, g)
     -> feat (N, H + 1, F) (index 0 = start), action (N, H, A), log_prob (N, H) of a_k at s_k."""
@@ -447,7 +391,7 @@ def critic_loss(critic, feat, goal, returns):  # Eq. 4: V_eta trained with TD(la
 def policy_losses(world_model, dist_net, actor, critic, slow_critic, return_norm, start, goal, cfg, vae=None, other_reading=True, ensemble=None):  # Eq. 4
     """One update of L_MG (module docstring): start dict of (N, .), goal (N, F) -> actor loss, critic loss, metrics.
     vae: the goal VAE, read by cfg.reward 'feature'. other_reading: also log the reward not in use (with vae); train.py
-    asks for it only on the updates it logs (it cost a third of the update). ensemble: the Disagreement whose u
+    asks for it only on the updates it logs (it cost a third of the update). ensemble: the world_model.Disagreement whose u
     cfg.uncertainty weighs as a penalty on the reward (ours). Call ema_update(slow_critic, critic, cfg.slow_critic_rate)
     after the critic's optimiser step."""
     if cfg.reward not in REWARDS or (cfg.reward == "feature" and vae is None):

@@ -128,7 +128,7 @@ def build_models(cfgs, obs_shape, action_dim, p_dim, device):
     }
     models["critic"], models["slow_critic"] = policy.make_critics(cfgs["ac"], wm.feat_dim, wm.feat_dim)
     if cfgs["ac"].uncertainty:  # only then: runs and agents without it keep their set of models
-        models["ensemble"] = policy.Disagreement.of(wm)
+        models["ensemble"] = world_model.Disagreement.of(wm)
     return {k: m.to(device) for k, m in models.items()}
 
 
@@ -321,8 +321,8 @@ def pretrain(cfgs, run_dir, resume):
         apply("goal_vae", loss, "Eq. 3 goal-VAE loss")
         metrics.update(m)
         post_feat = wm.feat(post).detach()  # (B, T, F)
-        if "ensemble" in models:  # policy.Disagreement, for --ac-uncertainty
-            target = policy.Disagreement.target(wm, batch[wc.obs])
+        if "ensemble" in models:  # world_model.Disagreement, for --ac-uncertainty
+            target = world_model.Disagreement.target(wm, batch[wc.obs])
             loss, m = models["ensemble"].loss(post_feat, batch["action"], target, batch["is_first"])
             apply("ensemble", loss, "the ensemble's loss")
             metrics.update(m)

@@ -5,7 +5,7 @@ same actor is imagined 15 steps towards g (Eq. 4's rollout), and Eq. 4's reward 
 twice: over the imagined states, and over the posterior states of the 15 real steps that followed. Per task and over
 all: imagined, real and imagined minus real, mean +- s.e. over episodes. An actor trained on imagination that the
 environment does not follow earns more imagined than real reward.
-With --uncertainty N, also the disagreement u of policy.Disagreement (--ac-uncertainty's penalty) on the same imagined
+With --uncertainty N, also the disagreement u of world_model.Disagreement (--ac-uncertainty's penalty) on the same imagined
 steps, per episode, in units of its mean on D_body's transitions, and the rank correlation over episodes of u with
 the gap: does the ensemble see where the world model is wrong? The run's own ensemble where it has one, else one
 trained for N updates on the run's frozen world model and D_body.
@@ -27,6 +27,7 @@ import envs  # noqa: E402
 import evaluate  # noqa: E402
 import policy  # noqa: E402
 import train  # noqa: E402
+import world_model  # noqa: E402
 
 STARTS, HORIZON = (10, 40, 70, 100), 15
 
@@ -54,25 +55,25 @@ def imagined_reward(models, start, goals, horizon, seed=0):
 
 @torch.no_grad()
 def imagined_uncertainty(models, ensemble, start, goals, horizon, seed=0):
-    """u of policy.Disagreement on the steps imagined_reward imagines (the same seed, the same path): each episode's
+    """u of world_model.Disagreement on the steps imagined_reward imagines (the same seed, the same path): each episode's
     mean over s_k, a_k, k = 0 .. horizon - 1 (N,)."""
     states, actions = imagined_path(models, start, goals, horizon, seed)
     return ensemble.disagreement(models["world_model"].feat(states)[:, :-1], actions).mean(1)
 
 
 def train_ensemble(cfgs, models, updates, seed=0):
-    """A policy.Disagreement trained for `updates` updates on the run's frozen world model: its posterior states of
+    """A world_model.Disagreement trained for `updates` updates on the run's frozen world model: its posterior states of
     D_body batches, as train.py trains one beside the world model."""
     wc, wm = cfgs["wm"], models["world_model"]
     data = train.prepare_data(cfgs)[1]
-    ensemble = policy.Disagreement.of(wm)
+    ensemble = world_model.Disagreement.of(wm)
     opt, rng = torch.optim.Adam(ensemble.parameters(), lr=wc.lr), np.random.default_rng(seed)
     torch.manual_seed(seed)
     for _ in tqdm(range(updates), desc="train the ensemble"):
         batch = data.sample(wc.batch, rng, "cpu")
         with torch.no_grad():
             post, _ = wm.observe(batch[wc.obs], batch["action"], batch["is_first"])
-        loss, _ = ensemble.loss(wm.feat(post), batch["action"], policy.Disagreement.target(wm, batch[wc.obs]), batch["is_first"])
+        loss, _ = ensemble.loss(wm.feat(post), batch["action"], world_model.Disagreement.target(wm, batch[wc.obs]), batch["is_first"])
         opt.zero_grad(set_to_none=True)
         loss.backward()
         torch.nn.utils.clip_grad_norm_(ensemble.parameters(), wc.grad_clip)

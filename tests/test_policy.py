@@ -391,7 +391,7 @@ def test_disagreement_is_small_where_the_data_went_and_large_off_it():
     """Trained on transitions whose inputs lie in one small region, the members agree there (u about 1 in units of the
     data's running mean, below it while the error still falls: the mean lags) and disagree far from it."""
     torch.manual_seed(0)
-    ensemble = P.Disagreement(feat_dim=6, action_dim=2, target_dim=3, units=32)
+    ensemble = W.Disagreement(feat_dim=6, action_dim=2, target_dim=3, units=32)
     opt = torch.optim.Adam(ensemble.parameters(), lr=3e-3)
     mix = torch.randn(8, 3)
     for _ in range(300):
@@ -418,7 +418,7 @@ def test_uncertainty_penalty_lowers_the_returns_by_the_lambda_return_of_minus_la
     _, _, post = world_model.loss(batch)
     start, _ = P.sample_starts(post, 16, torch.Generator().manual_seed(0))
     goal = world_model.feat(post).flatten(0, 1)[:16].detach()
-    ensemble = P.Disagreement(world_model.feat_dim, 2, 5, units=8)
+    ensemble = W.Disagreement(world_model.feat_dim, 2, 5, units=8)
     out = {}
     for lam in (0.0, 0.5):
         torch.manual_seed(1)

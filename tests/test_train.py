@@ -241,7 +241,7 @@ def test_an_actor_on_decoded_observations_trains_and_is_refused_on_pixels(smoke_
 
 
 def test_uncertainty_penalty_trains_its_ensemble_and_resumes(smoke_run, smoke_data, tmp_path):
-    """--ac-uncertainty: the run keeps a policy.Disagreement trained every update (Adam counts one step per update),
+    """--ac-uncertainty: the run keeps a world_model.Disagreement trained every update (Adam counts one step per update),
     logs the penalty's u, and resumes with it; runs without the flag have no ensemble."""
     cfgs = train.resolve_configs(train_args(data=smoke_data, **{"ac.uncertainty": 0.1}), "smoke")
     run = train.train(cfgs, str(tmp_path / "unc"), resume=False)
