@@ -252,7 +252,7 @@ class Segments:
         index = start[:, None] + np.arange(T)  # (B, T)
         out = {k: torch.as_tensor(v[index], device=device) for k, v in self.data.items()}
         out["episode"] = torch.as_tensor(episode, device=device)
-        if "p" in self.data:  # the feature of each segment's episode's last frame: hindsight goals (policy.bc_loss)
+        if "p" in self.data:  # the feature of each segment's episode's last frame: hindsight goals (cloning.bc_loss)
             out["p_last"] = torch.as_tensor(self.data["p"][self.starts[episode] + self.lengths[episode] - 1], device=device)
         return out
 

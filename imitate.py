@@ -39,6 +39,7 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
+import cloning
 import collect
 import envs
 import evaluate
@@ -144,7 +145,7 @@ def multi_goal_loss(models, start, goal, body_goals, bc, cfgs):  # Eq. 4 during 
     a_loss, c_loss, metrics = policy.policy_losses(models["world_model"], models["dist_net"], models["actor"], models["critic"],
                                                    models["slow_critic"], models["return_norm"], start, goals, ac, models["goal_vae"], other_reading=False)
     if ac.bc:
-        a_loss = a_loss + ac.bc * policy.bc_loss(models["actor"], bc["feat"], bc["goal"], bc["action"], bc["final"], ac.bc_final)[0]
+        a_loss = a_loss + ac.bc * cloning.bc_loss(models["actor"], bc["feat"], bc["goal"], bc["action"], bc["final"], ac.bc_final)[0]
     return a_loss, c_loss, metrics
 
 

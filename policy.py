@@ -48,12 +48,12 @@ class ActorCriticConfig:
     goal_mix: float = 0.5  # share of goals from the goal encoder, the rest D_body posterior states (ours; sample_goals)
     reward: str = "distance"  # r^goal: 'distance' = -d(s, g) (Sec. 4), 'feature' = cosine of the goal decoder's features of s and g (ours)
     goal_near: float = 0.0  # share of goals from a later frame of the start state's own segment, the rest anywhere in the batch (ours; sample_goals)
-    bc: float = 0.0  # weight of hindsight goal-conditioned behaviour cloning on D_body (ours, bc_loss; 0 = Eq. 4 alone)
+    bc: float = 0.0  # weight of hindsight goal-conditioned behaviour cloning on D_body (ours, cloning.bc_loss; 0 = Eq. 4 alone)
     bc_final: float = 0.0  # share of bc_loss's goals taken from the episode's last frame instead of a later frame of the segment (ours)
     bc_steps: int = 1  # actor steps on bc_loss per update: the first with Eq. 4's loss, the rest on bc_loss alone, each with fresh goals (ours)
-    bc_polish: int = 0  # bc_loss steps of the actor alone on the frozen final world model and goal VAE, after the last update (ours; train.polish)
-    bc_polish_fresh: int = 0  # 1: those steps train a freshly initialised actor instead of the trained one (ours; train.polish)
-    bc_polish_batches: int = 250  # D_body batches whose posterior states the polish computes once and cycles (ours; train.polish)
+    bc_polish: int = 0  # bc_loss steps of the actor alone on the frozen final world model and goal VAE, after the last update (ours; cloning.polish)
+    bc_polish_fresh: int = 0  # 1: those steps train a freshly initialised actor instead of the trained one (ours; cloning.polish)
+    bc_polish_batches: int = 250  # D_body batches whose posterior states the polish computes once and cycles (ours; cloning.polish)
     bc_polish_ema: float = 0.0  # decay of an exponential moving average of the actor's weights over the polish steps, kept as the actor in place of the last step's (ours; Polyak and Juditsky 1992; 0 = the last step's, kept: 0.999 moved the stickman +1.2 +- 0.6, 3 seeds, docs/experiments.md)
     uncertainty: float = 0.0  # lambda of the penalty r^goal - lambda u on imagined steps, u the disagreement of an ensemble of next-observation predictors in units of its mean on D_body (ours, world_model.Disagreement; MOPO, Yu et al. 2020; 0 = off)
     actor_input: str = "feat"  # what pi reads of s and g: 'feat' = [h, z] (Dreamer), 'obs' = the world model's decoded observation of each (ours, Actor; kept 'feat': 'obs' lost 14.4 points in the stickman's cloning probe, docs/experiments.md)
@@ -319,53 +319,6 @@ def actor_loss(returns, log_prob, return_norm, entropy_scale):  # Eq. 4
     entropy = -log_prob.mean()
     loss = -objective - entropy_scale * entropy
     return loss, {"actor_loss": loss.item(), "return": returns.mean().item(), "return_scale": scale.item(), "entropy": entropy.item()}
-
-
-AWR_MAX = 20.0  # the largest weight advantage_weights gives, before normalising (AWR, Peng et al. 2019)
-
-
-def advantage_weights(critic, dist_net, feat, next_feat, goal, gamma, beta):
-    """Weights of advantage-weighted cloning (ours, --ac-bc-awr; AWR, Peng et al. 2019; for hindsight goals WGCSL,
-    Yang et al. 2022): D_body's action a_t from s_t is scored by its one-step advantage under the actor's own value,
-    A = r^goal(s_{t+1}, g) + gamma V(s_{t+1}, g) - V(s_t, g), with r^goal = -d (Sec. 4) and V the critic of Eq. 4, so
-    actions that bring the goal nearer than the actor would are cloned more: a step of policy improvement beyond the
-    data's average. A is standardised over the batch (its scale, ~1/(1 - gamma) times d's, moves during training), the
-    weights exp(beta * A) are clipped at AWR_MAX and divided by their mean, so the loss keeps its scale.
-    feat, next_feat (N, F) s_t and s_{t+1}, goal (N, F) -> (N,), no gradient."""
-    with torch.no_grad():
-        adv = -dist_net(next_feat, goal) + gamma * critic(next_feat, goal) - critic(feat, goal)
-        adv = (adv - adv.mean()) / (adv.std() + 1e-6)
-        weight = torch.exp(beta * adv).clamp(max=AWR_MAX)
-        return weight / weight.mean()
-
-
-def bc_loss(actor, post_feat, goal_feat, action, final_goal=None, final_share=0.0, weigh=None):
-    """Hindsight goal-conditioned behaviour cloning (ours, a deviation; GCSL, Ghosh et al. 2021): D_body has no task
-    labels, but each of its actions a_t reaches what its own episode shows later, so -log pi(a_t | s_t, g) with g the
-    goal encoder's state of a later frame of the same segment, for every step t of every segment (each with its own
-    random later frame); with probability final_share, g is instead final_goal, the goal of the episode's last frame
-    (what evaluation and GIIL-ZS feed the policy: a standing expert's last frame is then the goal of its getting up).
-    post_feat (B, T, F) posterior feats, goal_feat (B, T, F) goal-encoder goals of every frame, final_goal (B, F),
-    action (B, T, A) with action[:, t] = a_{t-1} (world_model.py's alignment). weigh: None (every action counts the
-    same), or (s_t, s_{t+1}, g) (N, F) each -> per-action weights (N,), e.g. advantage_weights."""
-    B, T, _ = post_feat.shape
-    device = post_feat.device
-    t = torch.arange(T - 1, device=device).expand(B, -1)  # (B, T - 1): s_t, acted on with a_t = action[:, t + 1]
-    later = t + 1 + (torch.rand(B, T - 1, device=device) * (T - 1 - t)).long()  # a frame in (t, T - 1]
-    rows = torch.arange(B, device=device)[:, None].expand(-1, T - 1)
-    goal = goal_feat[rows, later]  # (B, T - 1, F)
-    if final_share > 0:
-        final = torch.rand(B, T - 1, 1, device=device) < final_share
-        goal = torch.where(final, final_goal[:, None].expand_as(goal), goal)
-    feat, goal = post_feat[rows, t].flatten(0, 1).detach(), goal.flatten(0, 1).detach()
-    a = action[rows, t + 1].flatten(0, 1).clamp(-0.999, 0.999)  # tanh is never exactly +-1
-    log_prob = actor.log_prob(feat, goal, torch.atanh(a))
-    if weigh is None:
-        loss = -log_prob.mean()
-        return loss, {"bc_loss": loss.item()}
-    weight = weigh(feat, post_feat[rows, t + 1].flatten(0, 1).detach(), goal)
-    loss = -(weight * log_prob).mean()
-    return loss, {"bc_loss": -log_prob.mean().item(), "bc_weight_max": weight.max().item()}
 
 
 def gradient_norms(module, **losses):

@@ -6,6 +6,7 @@ One update, in the order of Sec. 4:
   Eq. 7  temporal distance network on pairs of posterior states (and of states and encoder goals, ours)
   Eq. 4  goal-conditioned actor-critic in imagination, reward -d(s, g)   (after `policy_start` updates,
          once the world model and distance give a meaningful reward)
+  ours   hindsight behaviour cloning beside Eq. 4's actor loss, and a cloning polish after the last update (cloning.py)
 Ends with the learning curve (learning_curve.png) and the goal-reaching benchmark (evaluate.py): the multi-task
 policy in the real environment with its own body's side-view demos as goals, against random actions.
 
@@ -23,6 +24,7 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
+import cloning
 import collect
 import distance
 import envs
@@ -311,7 +313,7 @@ def pretrain(cfgs, run_dir, resume):
     saved, log, t0, metrics = step, open(os.path.join(run_dir, "metrics.jsonl"), "a"), time.time(), {}
     wm, vae, dist_net = models["world_model"], models["goal_vae"], models["dist_net"]
     bar = tqdm(total=tc.steps, initial=step, desc=f"train {os.path.basename(run_dir)}")
-    weights = weigh(models, ac)
+    weights = cloning.weigh(models, ac)
     while step < tc.steps:
         batch = data.sample(wc.batch, rng, device)
         loss, m, post = wm.loss(batch)  # Eq. 2
@@ -342,7 +344,7 @@ def pretrain(cfgs, run_dir, resume):
             if ac.bc:
                 with torch.no_grad():
                     final_goal = vae.goal(batch["p_last"])  # (B, F)
-                clone = lambda: policy.bc_loss(models["actor"], post_feat, goal_feat, batch["action"], final_goal, ac.bc_final, weights)
+                clone = lambda: cloning.bc_loss(models["actor"], post_feat, goal_feat, batch["action"], final_goal, ac.bc_final, weights)
                 bc, bc_metrics = clone()
                 if logged:  # Eq. 4's share of the actor's step against the cloning's (docs/experiments.md)
                     m.update(policy.gradient_norms(models["actor"], eq4=a_loss, bc=ac.bc * bc))
@@ -373,60 +375,10 @@ def pretrain(cfgs, run_dir, resume):
     bar.close()
     if ac.bc and ac.bc_polish:
         unpolished = copy.deepcopy(models["actor"].state_dict())
-        saved = save(actor_unpolished=unpolished, actor_polish_last=polish(models, cfgs, data, device))
+        saved = save(actor_unpolished=unpolished, actor_polish_last=cloning.polish(models, cfgs, data, device))
     final_report(run_dir, models, cfgs, held_out, device)
     print(f"wrote {ckpt_path}, {run_dir}/metrics.jsonl")
     return run_dir
-
-
-def weigh(models, ac):
-    """bc_loss's per-action weights: advantage-weighted cloning when --ac-bc-awr > 0 (policy.advantage_weights, with
-    the slow critic, the one Eq. 4's targets come from), else None (plain cloning)."""
-    if not ac.bc_awr:
-        return None
-    return lambda feat, next_feat, goal: policy.advantage_weights(models["slow_critic"], models["dist_net"], feat, next_feat, goal, ac.gamma, ac.bc_awr)
-
-
-def polish(models, cfgs, data, device):
-    """After the last update, ac.bc_polish steps of hindsight behaviour cloning (policy.bc_loss) of the actor alone on
-    the frozen final world model and goal VAE (ours): during training the actor clones from posterior states that the
-    world model still moves, and cloning on the final ones raised goal reaching (docs/experiments.md, Phase 1). With
-    ac.bc_polish_fresh the actor is first initialised afresh (models["actor"] is replaced). The posterior states of
-    ac.bc_polish_batches D_body batches are computed once and cycled, each step with fresh hindsight goals; a fresh
-    Adam at the actor's lr, and RNGs of its own, so that the training's (in the checkpoint) are untouched. With
-    ac.bc_polish_ema the actor kept is the moving average of the steps' weights; returns the last step's state_dict
-    then (None otherwise)."""
-    wc, ac, tc = cfgs["wm"], cfgs["ac"], cfgs["train"]
-    wm, vae = models["world_model"], models["goal_vae"]
-    rng, cache = np.random.default_rng([tc.seed, 1]), []
-    with torch.random.fork_rng(devices=[]), torch.no_grad():
-        torch.manual_seed(tc.seed + 1)
-        if ac.bc_polish_fresh:
-            models["actor"] = policy.Actor(ac, wm.feat_dim, wm.feat_dim, data.data["action"].shape[-1], wm.decoder).to(device)
-        for _ in range(min(ac.bc_polish_batches, ac.bc_polish)):
-            b = data.sample(wc.batch, rng, device)
-            post, _ = wm.observe(b[wc.obs], b["action"], b["is_first"])
-            cache.append((wm.feat(post), vae.goal(b["p"]), b["action"], vae.goal(b["p_last"])))
-    actor = models["actor"]
-    opt = torch.optim.Adam(actor.parameters(), lr=ac.actor_lr)
-    average = copy.deepcopy(actor).requires_grad_(False) if ac.bc_polish_ema else None
-    weights = weigh(models, ac)
-    with torch.random.fork_rng(devices=[]):
-        torch.manual_seed(tc.seed + 2)
-        for k in tqdm(range(ac.bc_polish), desc="polish the actor (behaviour cloning on the final world model)"):
-            loss, m = policy.bc_loss(actor, *cache[k % len(cache)], ac.bc_final, weights)
-            opt.zero_grad(set_to_none=True)
-            loss.backward()
-            torch.nn.utils.clip_grad_norm_(actor.parameters(), ac.grad_clip)
-            opt.step()
-            if average is not None:
-                policy.ema_update(average, actor, 1 - ac.bc_polish_ema)
-    print(f"polished the actor: {ac.bc_polish} cloning steps on the final world model, bc_loss {m['bc_loss']:.3f}")
-    if average is None:
-        return None
-    last = copy.deepcopy(actor.state_dict())
-    actor.load_state_dict(average.state_dict())
-    return last
 
 
 def main():

@@ -1,5 +1,5 @@
 """The behaviour-cloning probe of docs/experiments.md (Phase 1): how far hindsight goal-conditioned behaviour cloning
-alone (policy.bc_loss, no Eq. 4) takes a fresh actor on the frozen world model and goal VAE of a trained run, scored
+alone (cloning.bc_loss, no Eq. 4) takes a fresh actor on the frozen world model and goal VAE of a trained run, scored
 by the goal-reaching benchmark (evaluate.goal_reaching, --episodes per demo goal). It first prints what the data
 allow: the mean normalised score of D_body's expert episodes per task, and for each own side-view demo's last feature
 p_T the share of its 200 nearest D_body frames (cosine of p) that come from the same task. Run from the repository root:
@@ -16,6 +16,7 @@ import numpy as np
 import torch
 
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+import cloning  # noqa: E402
 import collect  # noqa: E402
 import envs  # noqa: E402
 import evaluate  # noqa: E402
@@ -58,5 +59,5 @@ if __name__ == "__main__":
     ac = dataclasses.replace(cfgs["ac"], units=args.units or cfgs["ac"].units, actor_layers=args.layers or cfgs["ac"].actor_layers,
                              mixture=args.mixture or cfgs["ac"].mixture, actor_input=args.actor_input or cfgs["ac"].actor_input,
                              bc_polish=args.steps, bc_polish_fresh=int(not args.keep_actor), bc_polish_batches=args.batches, bc_final=args.final_share)
-    train.polish(models, {**cfgs, "ac": ac}, data, "cpu")  # the cloning steps, as train.py's polish runs them
+    cloning.polish(models, {**cfgs, "ac": ac}, data, "cpu")  # the cloning steps, as train.py's polish runs them
     print("\n".join(evaluate.summary(evaluate.goal_reaching(models, cfgs, args.episodes, 500))))

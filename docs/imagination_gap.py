@@ -101,7 +101,7 @@ def task_gap(models, cfgs, task, episodes=1, ensemble=None):
 
 
 def load(run_dir, unpolished=False):
-    """train.load_run's configs and models; with `unpolished`, the actor as training left it, before train.polish's
+    """train.load_run's configs and models; with `unpolished`, the actor as training left it, before cloning.polish's
     cloning steps (the checkpoint keeps it)."""
     cfgs, models, ckpt = train.load_run(run_dir)
     if unpolished:
@@ -139,7 +139,7 @@ if __name__ == "__main__":
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("runs", nargs="+", help="phase-1 run folders (or agents/<body>)")
     parser.add_argument("--episodes", type=int, default=1, help="episodes per demo goal")
-    parser.add_argument("--unpolished", action="store_true", help="the actor before the cloning polish after training (train.polish)")
+    parser.add_argument("--unpolished", action="store_true", help="the actor before the cloning polish after training (cloning.polish)")
     parser.add_argument("--uncertainty", type=int, default=0, metavar="N", help="also the ensemble's disagreement u (the run's, "
                         "else one trained for N updates on its frozen world model)")
     args = parser.parse_args()

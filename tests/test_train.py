@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 import torch
 
+import cloning
 import collect
 import evaluate
 import rundir
@@ -280,8 +281,8 @@ def test_polish_clones_on_the_final_models_and_leaves_training_untouched(smoke_d
     cfgs, models, _ = train.load_run(str(tmp_path / "plain"))
     cfgs["ac"] = dataclasses.replace(cfgs["ac"], bc_polish=5, bc_polish_fresh=1, bc_polish_batches=2)
     data = train.prepare_data(cfgs)[1]
-    train.polish(models, cfgs, data, "cpu")
+    cloning.polish(models, cfgs, data, "cpu")
     first = models["actor"].state_dict()
     models["actor"] = torch.nn.Linear(1, 1)  # any trained actor at all
-    train.polish(models, cfgs, data, "cpu")
+    cloning.polish(models, cfgs, data, "cpu")
     assert same(models["actor"].state_dict(), first) and not same(first, plain["models"]["actor"])
