@@ -1,4 +1,4 @@
-"""Hindsight goal-conditioned behaviour cloning in L_MG (ours, a deviation of the cpu preset; GCSL, Ghosh et al. 2021).
+"""Beside Eq. 4 (L_MG), ours: hindsight goal-conditioned behaviour cloning of D_body's actions (GCSL, Ghosh et al. 2021).
 
 Not in the paper: on a CPU budget Eq. 4 alone did not learn to reach goals (README, "Deviations from the paper";
 docs/experiments.md, Phase 1), so the actor's loss also clones D_body's own actions towards hindsight goals:
