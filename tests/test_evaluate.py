@@ -202,3 +202,39 @@ def test_imagination_gap_scores_the_ensembles_disagreement_on_the_imagined_path(
         assert u.shape == (2,) and torch.allclose(u, ensemble.disagreement(models["world_model"].feat(path)[:, :-1], actions).mean(1))
     assert gap.rank_correlation(np.array([1.0, 2.0, 3.0]), np.array([0.3, 0.2, 0.1])) == pytest.approx(-1)
     assert gap.rank_correlation(np.array([1.0, 2.0, 3.0, 4.0]), np.array([1.0, 3.0, 2.0, 4.0])) == pytest.approx(0.8)
+
+
+def test_filter_probe_reproduces_the_benchmark_and_its_window_changes_the_state(smoke_run):
+    """docs/filter_probe.py: carried over the episode (window 0) the probe's filter is the benchmark's, return for return;
+    a window shorter than the episode or z's mean gives other states, so other returns."""
+    import torch
+
+    import envs
+    import train
+
+    probe = docs_script("filter_probe")
+    cfgs, models, ckpt = train.load_run(smoke_run)
+    with torch.no_grad():
+        goals = models["goal_vae"].goal(torch.randn(2, ckpt["p_dim"]))
+    make = lambda: [envs.make_env("walker", "walk") for _ in range(2)]
+    plain, _ = evaluate.run_episodes(make(), models, goals, 12, "state", 3)
+    assert np.array_equal(probe.run_filtered(make(), models, goals, 12, 3), plain)
+    assert not np.allclose(probe.run_filtered(make(), models, goals, 12, 3, window=4), plain)
+    assert not np.allclose(probe.run_filtered(make(), models, goals, 12, 3, mean=True), plain)
+
+
+def test_ensemble_probe_acts_with_the_mean_of_its_clones_actions():
+    """docs/ensemble_probe.py: K actors act with the mean of their policy.Actor.act."""
+    import torch
+
+    import policy
+
+    ensemble = docs_script("ensemble_probe")
+    torch.manual_seed(0)
+    cfg = policy.ActorCriticConfig(**policy.PRESETS["smoke"])
+    actors = [policy.Actor(cfg, 5, 5, 3) for _ in range(3)]
+    feat, goal = torch.randn(4, 5), torch.randn(4, 5)
+    with torch.no_grad():
+        expected = sum(a.act(feat, goal) for a in actors) / 3
+        assert torch.allclose(ensemble.Ensemble(actors).act(feat, goal), expected, atol=1e-6)
+        assert not torch.allclose(actors[0].act(feat, goal), expected)
