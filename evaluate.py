@@ -128,18 +128,24 @@ def stderr(values):
     return float(np.std(values, ddof=1) / np.sqrt(len(values))) if len(values) > 1 else 0.0
 
 
+@torch.no_grad()
+def demo_goals(models, body, task, data, episodes, device="cpu"):
+    """The benchmark's goals: g = q(s | p_T) of each own side-view demo of `task` under data/demos, each repeated for
+    its `episodes` episodes -> (demos x episodes, F)."""
+    folder = os.path.join(data, "demos", f"{body}_{task}_side")
+    if not os.path.isdir(folder):
+        raise FileNotFoundError(f"no own-body demos at {folder}: collect them with `python collect.py --demos --data {data}`")
+    demos = collect.load_folder(folder, ("p",))
+    goals = models["goal_vae"].goal(torch.as_tensor(np.stack([d["p"][-1] for d in demos]), device=device))
+    return goals.repeat_interleave(episodes, 0)
+
+
 def goal_reaching(models, cfgs, episodes=3, steps=envs.EPISODE_STEPS, tasks=envs.TASKS, device="cpu"):
     """The benchmark (module docstring): {task: {'policy': [scores], 'random': [scores]}} over demos x episodes."""
     body, data = cfgs["train"].env, cfgs["train"].data
     out = {}
     for task in tasks:
-        folder = os.path.join(data, "demos", f"{body}_{task}_side")
-        if not os.path.isdir(folder):
-            raise FileNotFoundError(f"no own-body demos at {folder}: collect them with `python collect.py --demos --data {data}`")
-        demos = collect.load_folder(folder, ("p",))
-        with torch.no_grad():  # g = q(s | p_T) of every demo, each the goal of `episodes` episodes
-            goals = models["goal_vae"].goal(torch.as_tensor(np.stack([d["p"][-1] for d in demos]), device=device))
-        goals = goals.repeat_interleave(episodes, 0)  # (demos x episodes, F)
+        goals = demo_goals(models, body, task, data, episodes, device)
         env_list = [envs.make_env(body, task) for _ in range(len(goals))]
         out[task] = {}
         for name in tqdm(("policy", "random"), desc=f"goal reaching {body} {task}", leave=False):

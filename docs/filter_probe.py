@@ -18,7 +18,6 @@ import numpy as np
 import torch
 
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
-import collect  # noqa: E402
 import envs  # noqa: E402
 import evaluate  # noqa: E402
 import rundir  # noqa: E402
@@ -71,8 +70,7 @@ if __name__ == "__main__":
         raise SystemExit("error: the filter probe reads state observations; this run's world model reads pixels")
     scores = []
     for task in evaluate.BODY_TASKS:
-        demos = collect.load_folder(os.path.join(tc.data, "demos", f"{tc.env}_{task}_side"), ("p",))
-        goals = models["goal_vae"].goal(torch.as_tensor(np.stack([d["p"][-1] for d in demos]))).repeat_interleave(tc.eval_episodes, 0)
+        goals = evaluate.demo_goals(models, tc.env, task, tc.data, tc.eval_episodes)
         env_list = [envs.make_env(tc.env, task) for _ in range(len(goals))]
         if args.window or args.mean:
             returns = run_filtered(env_list, models, goals, tc.eval_steps, tc.eval_seed, args.window, args.mean)

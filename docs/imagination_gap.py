@@ -22,7 +22,6 @@ import torch
 from tqdm import tqdm
 
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
-import collect  # noqa: E402
 import envs  # noqa: E402
 import evaluate  # noqa: E402
 import policy  # noqa: E402
@@ -86,8 +85,7 @@ def task_gap(models, cfgs, task, episodes=1, ensemble=None):
     """(imagined, real, u) (N,) arrays for the demos of `task`, each the goal of `episodes` episodes, averaged over
     STARTS; u None without an ensemble."""
     body = cfgs["train"].env
-    demos = collect.load_folder(os.path.join(cfgs["train"].data, "demos", f"{body}_{task}_side"), ("p",))
-    goals = models["goal_vae"].goal(torch.as_tensor(np.stack([d["p"][-1] for d in demos]))).repeat_interleave(episodes, 0)
+    goals = evaluate.demo_goals(models, body, task, cfgs["train"].data, episodes)
     states = []
     env_list = [envs.make_env(body, task) for _ in range(len(goals))]
     evaluate.run_episodes(env_list, models, goals, STARTS[-1] + HORIZON, cfgs["wm"].obs, 30_000, on_state=states.append)
