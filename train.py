@@ -41,7 +41,7 @@ class TrainConfig:
     env: str = "walker"  # the agent's body
     preset: str = "cpu"  # smoke | cpu | paper: sizes of every component and of D_body
     seed: int = 0
-    steps: int = 3000  # updates (ours, cpu: ~25 min on 2 cores; Dreamer-scale runs use ~1e5 and more)
+    steps: int = 3000  # updates (ours, cpu: ~19 min on one idle core, docs/experiments.md; Dreamer-scale runs use ~1e5 and more)
     policy_start: int = 1000  # updates of the models before the actor-critic starts (ours)
     holdout_every: int = 20  # every 20th D_body episode is held out of training, for evaluate.evaluate_imagination
     eval_episodes: int = 3  # goal-reaching benchmark (evaluate.py): episodes per own-body demo goal
