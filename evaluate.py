@@ -38,13 +38,15 @@ def run_episodes(env_list, models, goals, steps, obs_key, seed, render=False, ra
     `temperature` (policy.Actor.act; 0: the tanh of the mean), or uniform random actions. goals (N, F), unused with random_actions.
     on_step(env_list), if given, is called after every step (probes read the physics there); on_state(state), with the
     posterior state dict of (N, .) of every step t = 0 .. steps (not with random_actions).
+    seed may also be a list of N env seeds (online.py: several goals from one start state).
     -> returns (N,) float array, frames (N, steps + 1, 64, 64, 3) if render else None."""
     wm, actor = models["world_model"], models["actor"]
     device = next(wm.parameters()).device
     N, A = len(env_list), env_list[0].action_dim
-    rng = np.random.default_rng(seed)
-    torch.manual_seed(seed)  # the posterior samples z_t: the same seed gives the same episodes
-    obs = np.stack([env.reset(seed=seed + i)[0] for i, env in enumerate(env_list)])
+    env_seeds = [seed + i for i in range(N)] if np.isscalar(seed) else list(seed)
+    rng = np.random.default_rng(env_seeds[0])
+    torch.manual_seed(env_seeds[0])  # the posterior samples z_t: the same seed gives the same episodes
+    obs = np.stack([env.reset(seed=s)[0] for s, env in zip(env_seeds, env_list)])
     action = np.zeros((N, A), np.float32)
     state, total, frames = None, np.zeros(N), []
     for t in range(steps + 1):

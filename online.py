@@ -1,0 +1,80 @@
+"""Ours, after the paper's Sec. 6: GIIL-online, the goal refined on real rollouts scored by the OT reward (psi frozen).
+
+Sec. 6: "During online rollouts, the agent could iteratively refine its inferred goal vector." Here the frozen
+policy pi(a | s, g) acts in the agent's own environment; each episode is rendered by the agent's own camera, encoded
+by the run's video encoder (Sec. 4, p_t = f(o_{t-k+1:t})) and scored by the OT reward of App. C, whole episode
+against every demo, the best-matching demo counting (ROT): J_real(g) = sum_t r^ot_t = -<P, C>. The task reward is
+never read (the agent does not have it): `episode_features` drops it.
+
+The search (ours; the paper is silent, precedents: successive halving, Jamieson & Talwalkar 2016; OpTI-BFM's choice
+among candidate latents, Rupf et al. 2025): the candidates are the zero-shot goals q(s | p_T) of the cell's demos
+(GIIL-ZS's goals). Round r runs every surviving candidate for `schedule[r][1]` episodes from the same environment
+seeds (common random numbers: the candidates are compared on the same start states), then keeps the `schedule[r + 1][0]`
+best by their mean OT score over all their episodes so far. The cpu schedule, 10 x 1, 4 x 1, 2 x 3, is 20 episodes
+(10,000 agent steps). The goal chosen is the best survivor; it is evaluated on environment seeds never used here.
+"""
+import dataclasses
+
+import numpy as np
+import torch
+
+import evaluate
+import ot_reward
+
+
+@dataclasses.dataclass
+class OnlineConfig:
+    schedule: tuple = ((10, 1), (4, 1), (2, 3))  # (candidates kept, episodes each) per round (ours): 20 episodes
+    seed_base: int = 50_000  # refinement env seeds: seed_base + 1000 seed + i, apart from the evaluation's 20000 + 100 seed + e
+    seeds: int = 3  # GIIL-online seeds (as the paper's non-zero-shot methods), each paired with GIIL-ZS (demo 0)
+
+
+PRESETS = {"smoke": dict(schedule=((2, 1), (1, 1)), seeds=1), "cpu": dict(), "paper": dict()}
+
+
+def budget(cfg, candidates):
+    """Real episodes the schedule spends on `candidates` goals."""
+    return sum(min(keep, candidates) * episodes for keep, episodes in cfg.schedule)
+
+
+def episode_features(models, env_list, goals, steps, obs_key, seed, encoder):
+    """Real episodes with goals (N, F) from env seeds seed, seed + 1, ... -> video features (N, steps + 1, D) of the
+    agent's own rendered frames. The environments' task returns are dropped here: nothing downstream can read them."""
+    _, frames = evaluate.run_episodes(env_list, models, goals, steps, obs_key, seed, render=True)
+    return np.stack([encoder(f) for f in frames])
+
+
+def ot_score(agent_p, demo_p, ot_cfg):
+    """J_real: the OT reward of whole episodes summed over their steps, agent_p (N, T, D), demo_p (K, M, D) -> (N,)."""
+    reward, _ = ot_reward.ot_reward(torch.as_tensor(agent_p), torch.as_tensor(demo_p), ot_cfg)
+    return reward.sum(-1).numpy()
+
+
+def successive_halving(score, n_candidates, cfg, seed):
+    """Choose among candidates 0 .. n - 1 by score(indices, env_seed) -> (len(indices),) OT scores of one episode each
+    from env_seed (every index the same start state). -> (chosen index, log: a list of (index, env_seed, score))."""
+    alive, log, next_seed = list(range(n_candidates)), [], cfg.seed_base + 1000 * seed
+    for r, (keep, episodes) in enumerate(cfg.schedule):
+        if r:  # the best `keep` by their mean score over every episode so far (ties: the lower index)
+            mean = {k: np.mean([s for i, _, s in log if i == k]) for k in alive}
+            alive = sorted(alive, key=lambda k: (-mean[k], k))[:keep]
+        for _ in range(episodes):
+            for k, s in zip(alive, score(alive, next_seed)):
+                log.append((k, next_seed, float(s)))
+            next_seed += 1
+    mean = {k: np.mean([s for i, _, s in log if i == k]) for k in alive}
+    return min(alive, key=lambda k: (-mean[k], k)), log
+
+
+def refine_goal(models, cfgs, make_env, goals, demo_p, cfg, seed, encoder, steps, ot_cfg):
+    """GIIL-online for one seed: goals (G, F) the candidates (the demos' zero-shot goals), demo_p (K, M, D) ->
+    (the chosen goal (F,), its index, the log of (index, env seed, OT score))."""
+    def score(indices, env_seed):  # one batch: every candidate from the same start state
+        env_list = [make_env() for _ in indices]
+        p = episode_features(models, env_list, goals[indices], steps, cfgs["wm"].obs, [env_seed] * len(indices), encoder)
+        for env in env_list:
+            env.close()
+        return ot_score(p, demo_p, ot_cfg)
+
+    chosen, log = successive_halving(score, len(goals), cfg, seed)
+    return goals[chosen], chosen, log

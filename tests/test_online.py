@@ -1,0 +1,72 @@
+"""online.py: GIIL-online's search finds the candidate best under the OT reward, spends the stated budget, and never
+reads the task reward; end to end through imitate.py (smoke)."""
+import numpy as np
+import torch
+
+import envs
+import imitate
+import online
+import tables
+import train
+import video_encoder
+
+SMOKE = imitate.ImitateConfig(**imitate.PRESETS["smoke"])
+
+
+def test_successive_halving_finds_the_best_candidate_under_noise():
+    """Ten candidates whose OT scores are their true means plus noise: the schedule (20 episodes) keeps the best."""
+    truth = np.array([-0.9, -0.5, -0.8, -0.3, -0.7, -0.6, -0.2, -0.85, -0.4, -0.75])
+    cfg = online.OnlineConfig()
+    for seed in range(5):
+        rng = np.random.default_rng(seed)
+        chosen, log = online.successive_halving(lambda idx, env_seed: truth[idx] + 0.05 * rng.standard_normal(len(idx)), 10, cfg, seed)
+        assert chosen == 6
+        assert len(log) == online.budget(cfg, 10) == 20
+        assert {s for _, s, _ in log} == set(range(cfg.seed_base + 1000 * seed, cfg.seed_base + 1000 * seed + 5))  # 5 rounds of starts
+
+
+def test_candidates_of_a_round_share_their_start_state():
+    seen = []
+    online.successive_halving(lambda idx, env_seed: seen.append((tuple(idx), env_seed)) or -np.asarray(idx, float), 10, online.OnlineConfig(), 0)
+    assert seen[0] == (tuple(range(10)), 50_000)
+    assert seen[1] == ((0, 1, 2, 3), 50_001)  # the 4 best (scores -index) of round 1, from the next start
+    assert [s for _, s in seen[2:]] == [50_002, 50_003, 50_004] and all(idx == (0, 1) for idx, _ in seen[2:])
+
+
+class NoRewardEnv:
+    """An env whose task reward is garbage: the refinement must not read it."""
+
+    def __init__(self, env, rng):
+        self.env, self.rng = env, rng
+
+    def __getattr__(self, name):
+        return getattr(self.env, name)
+
+    def step(self, action):
+        obs, reward, *rest = self.env.step(action)
+        return (obs, float(self.rng.normal(0, 1e6)), *rest)
+
+
+def test_refinement_never_reads_the_task_reward(smoke_run):
+    cfgs, models, _ = train.load_run(smoke_run)
+    goals = models["goal_vae"].goal(torch.randn(3, models["goal_vae"].feat_dim)).detach()
+    demo_p = np.random.default_rng(0).standard_normal((2, 11, models["goal_vae"].feat_dim)).astype(np.float32)
+    encoder = video_encoder.load_encoder("default")
+    cfg = online.OnlineConfig(schedule=((3, 1), (2, 1)))
+    ot_cfg = imitate.ot_reward.OTConfig(iters=5)
+    rng = np.random.default_rng(0)
+    plain = online.refine_goal(models, cfgs, lambda: envs.make_env("walker", "run"), goals, demo_p, cfg, 0, encoder, 10, ot_cfg)
+    poisoned = online.refine_goal(models, cfgs, lambda: NoRewardEnv(envs.make_env("walker", "run"), rng), goals, demo_p, cfg, 0, encoder, 10, ot_cfg)
+    assert plain[1] == poisoned[1] and plain[2] == poisoned[2]  # the same choice from the same OT scores
+
+
+def test_online_end_to_end_pairs_with_its_zero_shot_start(smoke_run):
+    oc = online.OnlineConfig(**online.PRESETS["smoke"])
+    rows = imitate.imitate(smoke_run, "stickman_walk", "side", False, SMOKE, zero_shot=False, online_cfg=oc)
+    on = [r for r in rows if r["method"] == tables.ONLINE]
+    zs0 = [r for r in rows if r["method"] == "GIIL-ZS (demo 0)"]
+    assert len(on) == len(zs0) == oc.seeds
+    assert on[0]["env_steps"] == online.budget(oc, 2) * SMOKE.eval_steps and on[0]["chosen_demo"] in (0, 1)
+    assert on[0]["config"] == tables.result_config(SMOKE, tables.ONLINE, oc) and "schedule" in on[0]["config"]
+    text = tables.markdown_tables("walker", rows)
+    assert "GIIL-online (ours)" in text and "online - ZS (demo 0), paired" in text
