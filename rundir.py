@@ -3,7 +3,9 @@ its run directory (runs/<name>/): one writer at a time, and logs that a killed r
 
 check_flags   a one-line error naming the flag of a number out of its range (--steps 0, --holdout-every 1, --goal-lr 1e3)
 lock          runs/<name>/lock, created with O_EXCL and holding the writer's pid: a second trainer of the same run
-              stops with a one-line error; a lock whose process is gone (a killed run) is stale and taken over
+              stops with a one-line error; a lock whose process is gone (a killed run) is stale and taken over (claim)
+run_checkpoint  a run's checkpoint, refused when it is not what the command expects (--env, agents/<body>, runs/<name>)
+run_main      an entry point's main(): bad input, Ctrl-C and SIGTERM each end in one line (the run's lock released)
 trim_jsonl    on resume, metrics.jsonl keeps only the rows up to the checkpoint's update (the killed run logged
               further updates, which the resumed run logs again)
 read_jsonl    the rows of a .jsonl log; a last line cut short by a kill is dropped, any other bad line is an error
@@ -11,7 +13,7 @@ append_jsonl  one row, on a line of its own after such a cut line
 fast_matmul   fp32 matmuls through oneDNN where that is faster and still fp32 (checked on this CPU)
 threads_flag  --threads of imitate.py, genrl.py and aime_nob.py: this process's torch threads, not the run's training ones
 export_agent  a trained run as a shipped agent, agents/<body>/checkpoint.pt: weights only (train.py --export)
-atomic_write  every file the project writes: a temporary file per writer, renamed onto the path (never half a file)
+atomic_write  every file the project writes, videos too: a temporary file per writer, renamed onto the path (never half a file)
 load_checkpoint, plain, generator, upgrade_checkpoint   checkpoints that load with torch.load(weights_only=True)
 """
 import contextlib
@@ -22,9 +24,15 @@ import json
 import math
 import os
 import pickle
+import re
+import signal
+import sys
 
 import numpy as np
 import torch
+
+import envs
+import world_model
 
 
 # Ranges of the numeric flags that are not counts or sizes (those are >= 1): (low, high), None = no bound. Learning
@@ -56,10 +64,12 @@ def check_flags(config, prefix=""):
 
 
 @contextlib.contextmanager
-def lock(run_dir):
-    """Hold run_dir/lock while the block runs; ValueError naming the other process if a live one holds it."""
-    os.makedirs(run_dir, exist_ok=True)
-    path = os.path.join(run_dir, "lock")
+def claim(path):
+    """Yields None while this process holds the lock file `path` (created with O_EXCL, holding its pid; removed at the
+    end), or the pid of the live process that holds it (then nothing is taken). A lock file whose process is gone (a
+    killed run) is stale and taken over; one holding this process's own pid is an outer block's, and left to it."""
+    os.makedirs(os.path.dirname(path) or ".", exist_ok=True)
+    fd = holder = None
     for attempt in range(3):
         try:
             fd = os.open(path, os.O_CREAT | os.O_EXCL | os.O_WRONLY)
@@ -70,20 +80,34 @@ def lock(run_dir):
                     holder = f.read().strip()
             except FileNotFoundError:  # released meanwhile: try again
                 continue
-            if holder.isdigit() and alive(int(holder)):
-                raise ValueError(f"{run_dir} is in use by process {holder} (its lock file {path}): wait for that run to end, "
-                                 f"or train into another --run-dir; delete {path} only if no such process runs") from None
+            if holder == str(os.getpid()) or (holder.isdigit() and alive(int(holder))):
+                break
+            holder = None
             with contextlib.suppress(FileNotFoundError):
                 os.remove(path)  # stale: its process was killed
-    else:
-        raise ValueError(f"{run_dir}: could not take its lock file {path} (other processes are starting on it); try again")
+    if fd is None:
+        if holder is None:
+            raise ValueError(f"could not take the lock file {path} (other processes are starting on it); try again")
+        yield None if holder == str(os.getpid()) else int(holder)
+        return
     with os.fdopen(fd, "w") as f:
         f.write(str(os.getpid()))
     try:
-        yield
+        yield None
     finally:
         with contextlib.suppress(FileNotFoundError):
             os.remove(path)
+
+
+@contextlib.contextmanager
+def lock(run_dir):
+    """Hold run_dir/lock while the block runs; ValueError naming the other process if a live one holds it."""
+    path = os.path.join(run_dir, "lock")
+    with claim(path) as holder:
+        if holder:
+            raise ValueError(f"{run_dir} is in use by process {holder} (its lock file {path}): wait for that run to end, "
+                             f"or train into another --run-dir; delete {path} only if no such process runs")
+        yield
 
 
 def read_jsonl(path):
@@ -167,6 +191,72 @@ def use_threads(threads):
 AGENTS = "agents"  # the shipped phase-1 agents: agents/<body>/checkpoint.pt, weights only (export_agent)
 
 
+RUN_NAME = re.compile(r"(?P<env>[a-z]+)_(?P<obs>state|pixels)_(?P<preset>[a-z]+)_s(?P<seed>\d+)")  # train.default_run_dir's
+
+
+def run_checkpoint(run_dir, device="cpu", env=None):
+    """The checkpoint of a trained run, checked against what the command expects of it before anything runs: the body
+    `env` where the command names one (--env), and what the folder's name says: agents/<body> holds that body's agent,
+    runs/<env>_<obs>_<preset>_s<seed> that run (train.default_run_dir). A folder of another name may hold any agent;
+    phase 2 then tags its rows with the checkpoint's body. Errors name the file and the fix."""
+    path, folder = os.path.join(run_dir, "checkpoint.pt"), os.path.normpath(run_dir)
+    name, shipped = os.path.basename(folder), os.path.basename(os.path.dirname(folder)) == AGENTS
+    named = RUN_NAME.fullmatch(name)
+    want = named.groupdict() if named else {}
+    if not os.path.exists(path):
+        if shipped:
+            raise FileNotFoundError(f"no checkpoint at {path}: restore the shipped agent with `git checkout {path}`")
+        body, preset, seed = env or want.get("env", "walker"), want.get("preset", "cpu"), want.get("seed", "0")
+        usual_obs = world_model.PRESETS.get(preset, {}).get("obs", world_model.WorldModelConfig.obs)
+        obs = want.get("obs", usual_obs)
+        flags = [f"--env {body}"] + [f"--{k} {v}" for k, v, usual in (("preset", preset, "cpu"), ("obs", obs, usual_obs), ("seed", seed, "0"))
+                                     if v != usual]
+        if folder != os.path.join("runs", f"{body}_{obs}_{preset}_s{seed}"):  # not where those flags train
+            flags.append(f"--run-dir {run_dir}")
+        raise FileNotFoundError(f"no checkpoint at {path}: train one with `python train.py {' '.join(flags)}`")
+    ckpt = load_checkpoint(path, device)
+    tc = ckpt["config"]["train"]
+    has = {"env": tc["env"], "obs": ckpt["config"]["wm"]["obs"], "preset": tc["preset"], "seed": str(tc["seed"])}
+    if env and env != has["env"]:
+        raise ValueError(f"--env {env}, but {path} holds a {has['env']} agent: pass --env {has['env']}, or a --run of a {env} agent")
+    if shipped and name in envs.BODIES and name != has["env"]:
+        raise ValueError(f"{path} holds a {has['env']} agent, but {folder} is the shipped {name} agent's folder: put the {name} "
+                         f"agent back (`git checkout {path}`) and keep the {has['env']} one in a folder of its own, passed by --run")
+    if any(want[k] != has[k] for k in want):
+        true = "{env}_{obs}_{preset}_s{seed}".format(**has)
+        raise ValueError(f"{path} holds the run {true} (body, observations, preset, seed), not the {name} that its folder is named: "
+                         f"move the folder to {os.path.join(os.path.dirname(folder), true)}")
+    return ckpt
+
+
+def check_gpu(preset, allow_cpu):
+    """train.py --preset paper without a GPU: a one-line error naming the time it would take and --allow-cpu."""
+    if preset == "paper" and not allow_cpu and not torch.cuda.is_available():
+        raise ValueError("--preset paper is sized for a GPU and this machine has none: its 100 000 updates of the paper's pixel models "
+                         "take ~6 h on one (docs/experiments.md) and far longer on CPU cores, after a 5000-episode D_body (~3 h to "
+                         "collect on 2 cores); pass --preset cpu, or --allow-cpu to run it here anyway")
+
+
+def _interrupt(signum, frame):
+    raise KeyboardInterrupt
+
+
+def run_main(main, kept):
+    """An entry point's main(): bad input ends in one line 'error: ...' (exit 1); Ctrl-C, or the SIGTERM of `timeout`
+    or a scheduler, in one line 'interrupted: <kept>', what is kept and how to go on (exit 130), once the `finally`
+    blocks of the run ran (its lock file released): Python's default SIGTERM ends the process without them."""
+    signal.signal(signal.SIGTERM, _interrupt)
+    try:
+        main()
+    except (ValueError, FileNotFoundError) as error:  # bad input: one line naming the problem, no traceback
+        raise SystemExit(f"error: {error}")
+    except KeyboardInterrupt:
+        sys.stdout.flush()
+        print(f"\ninterrupted: {kept}", file=sys.stderr, flush=True)
+        os._exit(130)  # not SystemExit: the interpreter's exit runs the finalizers of open renderers and pools, which print
+        # errors ('Exception ignored', EGL) after this line
+
+
 def alive(pid):
     """Whether process `pid` still runs."""
     try:
@@ -178,18 +268,27 @@ def alive(pid):
     return True
 
 
-def atomic_write(path, write):
+def atomic_write(path, write, by_name=False):
     """Every file this project writes goes through here: write(f) fills a temporary file, which is then renamed onto
     `path`, so a killed run leaves the old file or the new one, never half of one. The temporary file is named after
     the writer's pid, so two processes writing the same file (two runs side by side collecting one D_demo) each rename
-    a whole file of their own; a killed writer's leftover temporary file goes at the next write of `path`."""
+    a whole file of their own; a killed writer's leftover temporary file goes at the next write of `path`. by_name:
+    write(name) gets the temporary file's name instead, ending in path's extension (cv2.VideoWriter picks the format by it)."""
     os.makedirs(os.path.dirname(path) or ".", exist_ok=True)
-    tmp = f"{path}.{os.getpid()}.tmp"
-    with open(tmp, "wb") as f:
-        write(f)
+    tmp = f"{path}.{os.getpid()}.tmp" + (os.path.splitext(path)[1] if by_name else "")
+    try:
+        if by_name:
+            write(tmp)
+        else:
+            with open(tmp, "wb") as f:
+                write(f)
+    except BaseException:  # an error or Ctrl-C half-way: the old file stays, and no temporary one
+        with contextlib.suppress(FileNotFoundError):
+            os.remove(tmp)
+        raise
     os.replace(tmp, path)
-    for left in glob.glob(glob.escape(path) + ".*.tmp"):
-        pid = left[len(path) + 1:-len(".tmp")]
+    for left in glob.glob(glob.escape(path) + ".*.tmp*"):
+        pid = left[len(path) + 1:].split(".")[0]
         if pid.isdigit() and not alive(int(pid)):
             with contextlib.suppress(FileNotFoundError):
                 os.remove(left)
@@ -249,6 +348,9 @@ def export_agent(run_dir, out_dir):
     # D_body is not shipped: the agent reads (and collects) demos in its preset's default data folder, wherever it was
     # trained; that folder is kept as trained_data
     train_cfg = agent["config"]["train"]
+    body = os.path.basename(os.path.normpath(out_dir))
+    if os.path.basename(os.path.dirname(os.path.normpath(out_dir))) == AGENTS and body in envs.BODIES and body != train_cfg["env"]:
+        raise ValueError(f"--export {out_dir}: {run_dir} trained a {train_cfg['env']} agent; export it to agents/{train_cfg['env']}")
     agent["config"] = {**agent["config"], "train": {**train_cfg, "data": collect.DATA[train_cfg["preset"]]}}
     agent["trained_data"] = train_cfg["data"]
     agent["models"] = ckpt["models"]

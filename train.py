@@ -134,12 +134,10 @@ def build_models(cfgs, obs_shape, action_dim, p_dim, device):
     return {k: m.to(device) for k, m in models.items()}
 
 
-def load_run(run_dir, device="cpu"):
-    """A trained run: (configs, models, checkpoint metadata). Errors name the command that makes one."""
-    path = os.path.join(run_dir, "checkpoint.pt")
-    if not os.path.exists(path):
-        raise FileNotFoundError(f"no checkpoint at {path}: train one with `python train.py --env walker` (runs/<env>_<obs>_<preset>_s<seed>)")
-    ckpt = rundir.load_checkpoint(path, device)
+def load_run(run_dir, device="cpu", env=None):
+    """A trained run: (configs, models, checkpoint metadata), checked against --env and its folder's name
+    (rundir.run_checkpoint). Errors name the command that makes one."""
+    ckpt = rundir.run_checkpoint(run_dir, device, env)
     cfgs = {name: COMPONENTS[name][0](**fields) for name, fields in ckpt["config"].items()}
     models = build_models(cfgs, ckpt["obs_shape"], ckpt["action_dim"], ckpt["p_dim"], device)
     for name, model in models.items():
@@ -382,9 +380,10 @@ def pretrain(cfgs, run_dir, resume):
 
 
 def main():
-    parser = argparse.ArgumentParser(description="Phase 1: pretrain the world model, goal VAE, distance and multi-task policy on D_body.")
+    parser = argparse.ArgumentParser(description="Phase 1: pretrain the world model, goal VAE, distance and multi-task policy on D_body.", allow_abbrev=False)
     parser.add_argument("--resume", action="store_true", help="continue runs/<name>/checkpoint.pt (in a copy of a shipped agent: train on from its weights, fresh optimisers)")
     parser.add_argument("--evaluate", action="store_true", help="only the goal-reaching benchmark (evaluate.py) of the trained run")
+    parser.add_argument("--allow-cpu", action="store_true", help="train --preset paper without a GPU (it is sized for one)")
     parser.add_argument("--obs", dest="wm.obs", choices=("state", "pixels"), default=None, help="world-model input (default: the preset's)")
     parser.add_argument("--run-dir", default=None, help="default runs/<env>_<obs>_<preset>_s<seed>")
     parser.add_argument("--export", metavar="DIR", help="write the trained run (--run-dir) as a shipped agent DIR/checkpoint.pt "
@@ -401,22 +400,22 @@ def main():
     cfgs = resolve_configs(args, getattr(args, "train.preset") or "cpu")
     tc = cfgs["train"]
     run_dir = args.run_dir or default_run_dir(tc.env, tc.preset, tc.seed, cfgs["wm"].obs)
+    if (args.export or args.evaluate) and (args.resume or args.allow_cpu):
+        parser.error(f"--{'resume' if args.resume else 'allow-cpu'} is for training: it does nothing with --export or --evaluate")
     if args.export:
         print("wrote", rundir.export_agent(run_dir, args.export))
     elif args.evaluate:
         device = "cuda" if torch.cuda.is_available() else "cpu"
-        run_cfgs, models, _ = load_run(run_dir, device)
+        run_cfgs, models, _ = load_run(run_dir, device, getattr(args, "train.env"))
         torch.set_num_threads(tc.threads)
         rundir.fast_matmul()  # oneDNN where it is faster and still fp32 (rundir.py)
         run_cfgs["train"] = dataclasses.replace(run_cfgs["train"], eval_episodes=tc.eval_episodes, eval_steps=tc.eval_steps,
                                                 act_temperature=tc.act_temperature, eval_seed=tc.eval_seed, data=tc.data)
         report_goal_reaching(run_dir, models, run_cfgs, device)
     else:
+        rundir.check_gpu(tc.preset, args.allow_cpu)
         train(cfgs, run_dir, args.resume)
 
 
 if __name__ == "__main__":
-    try:
-        main()
-    except (ValueError, FileNotFoundError) as error:  # bad input: one line naming the problem, no traceback
-        raise SystemExit(f"error: {error}")
+    rundir.run_main(main, "the run folder keeps its last checkpoint: the same command with --resume goes on from it")
