@@ -202,7 +202,4 @@ def main():
 
 
 if __name__ == "__main__":
-    try:
-        main()
-    except (ValueError, FileNotFoundError) as error:  # bad input: one line naming the problem, no traceback
-        raise SystemExit(f"error: {error}")
+    rundir.run_main(main, "the finished seeds are in the run's results.jsonl: the same command runs the others")

@@ -219,7 +219,7 @@ def bench_ot():
 SECTIONS = {"render": bench_render, "features": bench_features, "collect": bench_collect, "components": bench_components, "phase1": bench_phase1, "ot": bench_ot, "gpu": bench_gpu}
 
 if __name__ == "__main__":
-    parser = argparse.ArgumentParser(description=__doc__)
+    parser = argparse.ArgumentParser(description=__doc__, allow_abbrev=False)
     parser.add_argument("--only", nargs="+", choices=SECTIONS, default=[s for s in SECTIONS if s != "gpu"], help="default: all but gpu")
     parser.add_argument("--against", metavar="REV", help="phase1: also time this git commit's train.py, in the same run (e.g. 4ca0c2f)")
     args = parser.parse_args()

@@ -27,6 +27,7 @@ import contextlib
 import json
 import multiprocessing
 import os
+import signal
 import zipfile
 from dataclasses import asdict, dataclass, replace
 
@@ -280,13 +281,13 @@ def load_folder(folder, keys=tuple(KEYS), encoder=None):
 
 
 def _worker(item):
-    """Simulate, compute features, write the views not on disk yet (a file written is never replaced); returns the
-    paths written (a pool worker, one episode)."""
+    """Simulate, compute features, write the views not on disk yet (a file written whole is never replaced); returns
+    the paths written (a pool worker, one episode)."""
     paths, job, encoder_spec = item
     from video_encoder import load_encoder
 
     encoder = _worker_encoder(load_encoder, encoder_spec)
-    written = [(path, episode) for path, episode in zip(paths, simulate(job)) if not os.path.exists(path)]
+    written = [(path, episode) for path, episode in zip(paths, simulate(job)) if not zipfile.is_zipfile(path)]
     for path, episode in written:
         save_episode(path, dict(episode, p=encoder(episode["pixels"]), encoder=encoder.name))
     return [path for path, _ in written]
@@ -304,7 +305,7 @@ def _worker_encoder(load_encoder, spec):
 
 def check_length(jobs):
     """Episodes on disk of another length than the jobs' (another preset's) are an error: the two would mix."""
-    done = [p for paths, _ in jobs for p in paths if os.path.exists(p)]
+    done = [p for paths, _ in jobs for p in paths if zipfile.is_zipfile(p)]
     steps = jobs[0][1]["steps"] if jobs else None
     if done and len(load_episode(done[0], ("is_first",))["is_first"]) != steps + 1:
         raise ValueError(f"{done[0]} is not a {steps}-step episode like the ones this collection makes (another preset's?): "
@@ -312,23 +313,22 @@ def check_length(jobs):
 
 
 def run_jobs(jobs, encoder_spec, workers, desc):
-    """Runs the jobs whose files are not all on disk yet (resume), in `workers` processes."""
+    """Runs the jobs whose files are not all on disk yet (resume), in `workers` processes. A file that is not a zip
+    archive (empty, cut short: not written by atomic_write) is not on disk: collected again, in its place."""
     check_length(jobs)
-    todo = [(paths, job, encoder_spec) for paths, job in jobs if not all(os.path.exists(p) for p in paths)]
-    print(f"{desc}: {len(jobs) - len(todo)} of {len(jobs)} episodes already on disk")
+    todo = [(paths, job, encoder_spec) for paths, job in jobs if not all(zipfile.is_zipfile(p) for p in paths)]
+    broken = [p for paths, _, _ in todo for p in paths if os.path.exists(p) and not zipfile.is_zipfile(p)]
+    print(f"{desc}: {len(jobs) - len(todo)} of {len(jobs)} episodes already on disk"
+          + (f"; {len(broken)} unreadable file(s) collected again ({', '.join(broken[:3])})" if broken else ""))
     if not todo:
         return
+    # spawn: no EGL context or torch thread pool is inherited from the parent; the workers ignore Ctrl-C, which ends
+    # the parent, whose pool then ends them (terminate)
     workers = min(workers, len(todo))
-    if workers <= 1:
-        results = map(_worker, todo)
-    else:  # spawn: no EGL context or torch thread pool is inherited from the parent
-        pool = multiprocessing.get_context("spawn").Pool(workers)
-        results = pool.imap_unordered(_worker, todo)
-    for _ in tqdm(results, total=len(todo), desc=desc):
-        pass
-    if workers > 1:
-        pool.close()
-        pool.join()
+    pool = multiprocessing.get_context("spawn").Pool(workers, signal.signal, (signal.SIGINT, signal.SIG_IGN)) if workers > 1 else None
+    with pool or contextlib.nullcontext():
+        for _ in tqdm(pool.imap_unordered(_worker, todo) if pool else map(_worker, todo), total=len(todo), desc=desc):
+            pass
 
 
 def recompute_features(data, encoder_spec):
@@ -371,7 +371,7 @@ def collect_demos(cfg, data="data", workers=2, encoder="default", demos=None):
 
 
 def main():
-    parser = argparse.ArgumentParser(description="Write D_body (--env BODY) and/or D_demo (--demos); recompute features (--features).")
+    parser = argparse.ArgumentParser(description="Write D_body (--env BODY) and/or D_demo (--demos); recompute features (--features).", allow_abbrev=False)
     parser.add_argument("--env", choices=envs.BODIES, help="collect D_body for this body")
     parser.add_argument("--demos", action="store_true", help="collect D_demo: every body x task x view")
     parser.add_argument("--features", action="store_true", help="recompute video features of everything under --data")
@@ -395,6 +395,8 @@ def main():
             parser.error(f"--history-from {args.history_from}: pass a fraction in [0, 1]")
         cfg = replace(cfg, history_from=args.history_from)
     cfg = replace(cfg, up_first=args.up_first)
+    if not args.env and (args.task_episodes is not None or args.history_from is not None or args.up_first):
+        parser.error("--task-episodes, --history-from and --up-first shape D_body: add --env BODY, or drop them")
     if not (args.env or args.demos or args.features):
         parser.error("nothing to do: pass --env BODY, --demos or --features")
     if args.env:
@@ -406,7 +408,4 @@ def main():
 
 
 if __name__ == "__main__":
-    try:
-        main()
-    except (ValueError, FileNotFoundError) as error:  # bad input: one line naming the problem, no traceback
-        raise SystemExit(f"error: {error}")
+    rundir.run_main(main, "the episodes written are kept whole: the same command collects the others")

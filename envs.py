@@ -277,7 +277,7 @@ def show(path="docs/bodies.png", size=192):
 
 
 if __name__ == "__main__":
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0], allow_abbrev=False)
     parser.add_argument("--show", action="store_true", help="write docs/bodies.png: both bodies x both views")
     args = parser.parse_args()
     if args.show:

@@ -277,7 +277,7 @@ if __name__ == "__main__":
     import argparse
 
     parser = argparse.ArgumentParser(description="Goal reaching of several phase-1 runs (e.g. training seeds), their imagined goal "
-                                     "reward on reachable goals and the actor's gradient norms, mean +- s.e. over runs.")
+                                     "reward on reachable goals and the actor's gradient norms, mean +- s.e. over runs.", allow_abbrev=False)
     parser.add_argument("runs", nargs="+", help="run folders with goal_reaching.json (train.py writes it)")
     try:
         runs = parser.parse_args().runs

@@ -317,7 +317,7 @@ def train(body, tasks, cfg, ckpt_dir, resume, warm_start=(), replace_committed=F
 
 
 def main():
-    parser = argparse.ArgumentParser(description="Train (or --eval) the per-task SAC experts of one body.")
+    parser = argparse.ArgumentParser(description="Train (or --eval) the per-task SAC experts of one body.", allow_abbrev=False)
     parser.add_argument("--body", choices=envs.BODIES)
     parser.add_argument("--tasks", nargs="+", default=list(envs.TASKS), choices=envs.TASKS)
     parser.add_argument("--ckpt-dir", default="runs/experts", help="training state (not committed)")
@@ -333,6 +333,8 @@ def main():
     for field, value in asdict(ExpertConfig()).items():
         parser.add_argument("--" + field.replace("_", "-"), type=type(value), default=value)
     args = parser.parse_args()
+    if args.history and not args.eval:
+        parser.error("--history works with --eval only: add --eval, or drop it")
     cfg = ExpertConfig(**{f: getattr(args, f) for f in asdict(ExpertConfig())})
     rundir.check_flags(cfg)
     torch.set_num_threads(1)  # small MLPs: one thread is fastest, and far faster when the cores are shared (train.py)
@@ -377,7 +379,4 @@ def main():
 
 
 if __name__ == "__main__":
-    try:
-        main()
-    except (ValueError, FileNotFoundError) as error:  # bad input: one line naming the problem, no traceback
-        raise SystemExit(f"error: {error}")
+    rundir.run_main(main, "the last training state is in --ckpt-dir: the same command with --resume goes on from it")

@@ -249,7 +249,7 @@ def config_from_args(cls, presets, args):
 
 
 def cell_parser(description, cls, presets):
-    parser = argparse.ArgumentParser(description=description)
+    parser = argparse.ArgumentParser(description=description, allow_abbrev=False)
     parser.add_argument("--demo", required=True, help="<demonstrator body>_<task>, e.g. stickman_run")
     parser.add_argument("--view", default="side", choices=envs.VIEWS, help="camera of the demo")
     parser.add_argument("--run", default=train.default_run_dir("walker", "cpu"), help="the phase-1 run (train.py) whose world model is used")
@@ -267,7 +267,4 @@ def main():
 
 
 if __name__ == "__main__":
-    try:
-        main()
-    except (ValueError, FileNotFoundError) as error:  # bad input: one line naming the problem, no traceback
-        raise SystemExit(f"error: {error}")
+    rundir.run_main(main, "the finished seeds are in the run's results.jsonl: the same command runs the others")

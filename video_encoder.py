@@ -385,7 +385,7 @@ def bench(frames_per_call=None, repeats=3):
 
 
 def main():
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0], allow_abbrev=False)
     parser.add_argument("--eval", action="store_true", help="task accuracy of the nearest task centroid on D_demo, the four settings")
     parser.add_argument("--bench", action="store_true", help="frames/s of the default encoder against rendering")
     parser.add_argument("--data", default="data", help="dataset root holding demos/<body>_<task>_<view>/*.npz")
