@@ -43,12 +43,13 @@ import cloning
 import collect
 import envs
 import evaluate
+import online
 import ot_reward
 import policy
 import rundir
 import tables
 import train
-from video_encoder import check_same_encoder
+from video_encoder import check_same_encoder, load_encoder
 
 
 @dataclasses.dataclass
@@ -74,6 +75,7 @@ PRESETS = {
 
 
 CHOICES = {"preset": tuple(PRESETS)}
+FINETUNE_FIELDS = ("steps", "starts", "goal_lr", "critic_lr", "finetune_policy", "seeds")  # what GIIL-FT alone reads
 
 
 def setting(agent_body, demo_body, view):
@@ -212,19 +214,28 @@ def finetune_goal(models, cfgs, ic, ot_cfg, p_goal, demo_p, seed, device, optim_
 
 
 def write_video(path, demo_frames, agent_frames):
-    """demo | agent side by side, 4x upscaled, 20 frames/s (one frame per agent step = 0.05 s)."""
+    """demo | agent side by side, 4x upscaled, 20 frames/s (one frame per agent step = 0.05 s); a whole file or none
+    (rundir.atomic_write: cv2 writes the temporary file by its name)."""
     n = min(len(demo_frames), len(agent_frames))
     both = np.concatenate([demo_frames[:n], agent_frames[:n]], axis=2)  # (n, 64, 128, 3)
-    writer = cv2.VideoWriter(path, cv2.VideoWriter_fourcc(*"mp4v"), 20, (both.shape[2] * 4, both.shape[1] * 4))
-    for frame in both:
-        writer.write(cv2.resize(cv2.cvtColor(frame, cv2.COLOR_RGB2BGR), None, fx=4, fy=4, interpolation=cv2.INTER_NEAREST))
-    writer.release()
+
+    def write(name):
+        writer = cv2.VideoWriter(name, cv2.VideoWriter_fourcc(*"mp4v"), 20, (both.shape[2] * 4, both.shape[1] * 4))
+        if not writer.isOpened():
+            raise ValueError(f"{path}: this OpenCV cannot write mp4 videos (no FFmpeg?); pass --video 0")
+        for frame in both:
+            writer.write(cv2.resize(cv2.cvtColor(frame, cv2.COLOR_RGB2BGR), None, fx=4, fy=4, interpolation=cv2.INTER_NEAREST))
+        writer.release()
+
+    rundir.atomic_write(path, write, by_name=True)
 
 
-def imitate(run_dir, demo, view, finetune, ic, zero_shot=True, done=frozenset()):
-    """GIIL-ZS (unless not zero_shot) and GIIL-FT (with finetune) for one demo folder; appends each evaluation
+def imitate(run_dir, demo, view, finetune, ic, zero_shot=True, done=None, online_cfg=None):
+    """GIIL-ZS (unless not zero_shot), GIIL-FT (with finetune) and GIIL-online (with an online.OnlineConfig, ours after
+    Sec. 6) for one demo folder; appends each evaluation
     to runs/<name>/results.jsonl and returns the rows. done: (method, seed) pairs this cell already has (tables.table),
-    not run again: a cell cut off after some seeds goes on from the first missing one."""
+    not run again: a cell cut off after some seeds goes on from the first missing one. None: those results.jsonl has
+    for these demos and settings, as --table finds them (a rerun after Ctrl-C goes on, appending no duplicates)."""
     rundir.check_flags(ic)
     device = "cuda" if torch.cuda.is_available() else "cpu"
     cfgs, models, ckpt = train.load_run(run_dir, device)
@@ -244,6 +255,11 @@ def imitate(run_dir, demo, view, finetune, ic, zero_shot=True, done=frozenset())
     os.makedirs(out_dir, exist_ok=True)
     results_path = os.path.join(run_dir, "results.jsonl")
     rows = []
+    if done is None:
+        configs = {m: tables.result_config(ic, m, online_cfg) for m in tables.METHODS + ((tables.ONLINE,) if online_cfg else ())}
+        done = {(r["method"], r["seed"]) for r in tables.finished(tables.load_results(run_dir), demo, view, demo_returns, configs)}
+        if done:
+            print(f"{results_path} has {len(done)} of these evaluations (these demos and settings): kept, not run again")
 
     def evaluate_goal(method, seed, goal, video_demo, **extra):
         """eval_episodes episodes at once with goal (F,), environment seeds 20000 + 100 seed + e: GIIL-FT seed s and
@@ -258,7 +274,7 @@ def imitate(run_dir, demo, view, finetune, ic, zero_shot=True, done=frozenset())
             write_video(os.path.join(out_dir, f"{demo}_{view}_{method.replace(' ', '_')}_s{seed}.mp4"), video_demo, frames[0])
         row = {"agent": tc.env, "demo": demo, "view": view, "task": task, "setting": where, "method": method, "seed": seed,
                "score": float(np.mean(scores)), "episode_scores": scores, "time": round(time.time() - t0, 1), "demo_returns": demo_returns,
-               "config": tables.result_config(ic, method), **extra}
+               "config": tables.result_config(ic, method, online_cfg), **extra}
         rundir.append_jsonl(results_path, row)
         rows.append(row)
 
@@ -284,7 +300,20 @@ def imitate(run_dir, demo, view, finetune, ic, zero_shot=True, done=frozenset())
                                  ckpt.get("optims"))
             # how far finetuning moved g: beside the distance between the demos' zero-shot goals (docs/experiments.md)
             evaluate_goal("GIIL-FT", seed, goal, demos[0]["pixels"], goal_shift=round((goal - goals[0]).norm().item(), 3))
-    for method in tables.METHODS:
+    if online_cfg:  # GIIL-online (online.py): the goal chosen among the demos' zero-shot goals by the OT reward of real rollouts
+        encoder, demo_p = load_encoder(tc.encoder), np.stack([d["p"] for d in demos])
+        for seed in range(online_cfg.seeds):
+            t0 = time.time()
+            if ("GIIL-ZS (demo 0)", seed) not in done:
+                evaluate_goal("GIIL-ZS (demo 0)", seed, goals[0], demos[0]["pixels"])
+            if (tables.ONLINE, seed) in done:
+                continue
+            t0 = time.time()  # GIIL-online's time: its real episodes, their scoring and its evaluation
+            goal, k, log = online.refine_goal(models, cfgs, lambda: envs.make_env(tc.env, task), torch.stack(goals), demo_p, online_cfg,
+                                              seed, encoder, ic.eval_steps, ot_cfg)
+            evaluate_goal(tables.ONLINE, seed, goal, demos[k]["pixels"], chosen_demo=k, env_steps=len(log) * ic.eval_steps,
+                          ot_log=[[i, s, round(score, 4)] for i, s, score in log])
+    for method in tables.METHODS + (tables.ONLINE,):
         scores = [r["score"] for r in rows if r["method"] == method]
         if scores:
             print(f"{method} {tc.env} imitating {demo} ({view} view, {where}): normalised score {np.mean(scores):.1f} +- "
@@ -294,18 +323,20 @@ def imitate(run_dir, demo, view, finetune, ic, zero_shot=True, done=frozenset())
 
 
 def main():
-    parser = argparse.ArgumentParser(description="Phase 2: infer the goal from a demo (GIIL-ZS, --finetune: GIIL-FT), or --table.")
+    parser = argparse.ArgumentParser(description="Phase 2: infer the goal from a demo (GIIL-ZS, --finetune: GIIL-FT), or --table.", allow_abbrev=False)
     parser.add_argument("--demo", help="<demonstrator body>_<task>, e.g. stickman_run")
-    parser.add_argument("--view", default="side", choices=envs.VIEWS, help="camera of the demo")
+    parser.add_argument("--view", choices=envs.VIEWS, help="camera of the demo (default side)")
     parser.add_argument("--run", help="the phase-1 run (train.py) whose agent imitates (default: the --env agent's run of this --preset, "
                         "runs/<env>_<obs>_<preset>_s0, or else the shipped agents/<env>)")
-    parser.add_argument("--env", choices=envs.BODIES, help="the agent's body, to pick the default --run (default walker)")
+    parser.add_argument("--env", choices=envs.BODIES, help="the agent's body, to pick the default --run (default walker); with --run, checked against its agent")
     parser.add_argument("--finetune", action="store_true", help="also GIIL-FT: finetune the goal (Eq. 5), --seeds seeds (default 5)")
+    parser.add_argument("--online", action="store_true", help="also GIIL-online (ours, after Sec. 6; online.py): the goal chosen on real "
+                        "rollouts by their OT reward, 20 episodes per seed, 3 seeds")
     parser.add_argument("--table", action="store_true", help="all settings x tasks for this agent; keeps finished cells")
-    parser.add_argument("--settings", default=",".join(envs.SETTINGS), help="with --table: the settings to run now, comma-separated")
-    parser.add_argument("--shard", default="0/1", metavar="I/N", help="with --table: run only cells I, I + N, ... of those of --settings (N processes, one table)")
+    parser.add_argument("--settings", help="with --table: the settings to run now, comma-separated (default all)")
+    parser.add_argument("--shard", metavar="I/N", help="with --table: run only cells I, I + N, ... of those of --settings (N processes, one table)")
     rundir.threads_flag(parser)
-    parser.add_argument("--methods", default="giil", help="with --table: comma-separated, of giil (GIIL-ZS, GIIL-FT), genrl, aime-nob (the "
+    parser.add_argument("--methods", help="with --table: comma-separated, of giil (GIIL-ZS, GIIL-FT; the default), genrl, aime-nob (the "
                         "baselines, genrl.py and aime_nob.py with their --preset); e.g. giil,genrl,aime-nob")
     for field in dataclasses.fields(ImitateConfig):
         parser.add_argument("--" + field.name.replace("_", "-"), type=type(field.default), default=None,
@@ -314,28 +345,39 @@ def main():
     rundir.use_threads(args.threads)
     given = {f.name: getattr(args, f.name) for f in dataclasses.fields(ImitateConfig) if getattr(args, f.name) is not None}
     ic = ImitateConfig(**{**PRESETS[given.get("preset", "cpu")], **given})
-    if args.run and args.env:
-        parser.error("--env only picks the default --run: pass one of them")
+    # a flag that does nothing in the mode chosen is an error, not ignored
+    demo_only = [f for f in ("demo", "view", "finetune", "online") if getattr(args, f)]
+    table_only = [f for f in ("settings", "shard", "methods") if getattr(args, f) is not None]
+    if args.table and demo_only:
+        parser.error(f"--{demo_only[0]} does nothing with --table (it runs every demo and view): drop it")
+    if not args.table and table_only:
+        parser.error(f"--{table_only[0]} works with --table only: add --table, or drop it")
+    if args.demo and not args.finetune and any(f in given for f in FINETUNE_FIELDS):
+        parser.error(f"--{[f for f in FINETUNE_FIELDS if f in given][0].replace('_', '-')} sets GIIL-FT: add --finetune, or drop it")
     run = args.run or train.resolve_run(args.env or "walker", ic.preset)
+    # before anything runs: the run's agent is the body --env names (with --run) and what its folder's name says
+    rundir.run_checkpoint(run, env=args.env)
     if args.table:
-        settings = args.settings.split(",")
+        settings = (args.settings or ",".join(envs.SETTINGS)).split(",")
         unknown = [w for w in settings if w not in envs.SETTINGS]
         if unknown:
             parser.error(f"unknown setting(s) {', '.join(unknown)}: choose from {', '.join(envs.SETTINGS)}")
         try:
-            shard = tuple(int(x) for x in args.shard.split("/"))
+            shard = tuple(int(x) for x in (args.shard or "0/1").split("/"))
             assert len(shard) == 2 and 0 <= shard[0] < shard[1]
         except (ValueError, AssertionError):
             parser.error(f"--shard {args.shard}: pass I/N with 0 <= I < N, e.g. 0/4")
-        tables.table(run, ic, settings, shard=shard, methods=args.methods.split(","))
+        tables.table(run, ic, settings, shard=shard, methods=(args.methods or "giil").split(","))
     elif args.demo:
-        imitate(run, args.demo, args.view, args.finetune, ic)
+        view, lock = args.view or "side", tables.cell_lock(run, args.demo, args.view or "side")
+        with rundir.claim(lock) as other:  # as a --table cell: one process at a time
+            if other:
+                raise ValueError(f"process {other} is running {args.demo} ({view} view) on {run} now ({lock}): wait for it to end; "
+                                 f"the same command then goes on from its rows")
+            imitate(run, args.demo, view, args.finetune, ic, online_cfg=online.OnlineConfig(**online.PRESETS[ic.preset]) if args.online else None)
     else:
         parser.error("pass --demo NAME (e.g. stickman_run) or --table")
 
 
 if __name__ == "__main__":
-    try:
-        main()
-    except (ValueError, FileNotFoundError) as error:  # bad input: one line naming the problem, no traceback
-        raise SystemExit(f"error: {error}")
+    rundir.run_main(main, "every evaluation finished is in the run's results.jsonl: the same command goes on from there")

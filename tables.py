@@ -3,6 +3,7 @@
 giil,genrl,aime-nob]` runs the cells missing from runs/<name>/results.jsonl (imitate.py, genrl.py, aime_nob.py) and
 writes runs/<name>/tables.md.
 """
+import contextlib
 import dataclasses
 import json
 import os
@@ -12,6 +13,7 @@ import numpy as np
 import collect
 import envs
 import evaluate
+import online
 import rundir
 import train
 from envs import SETTINGS
@@ -19,6 +21,7 @@ from envs import SETTINGS
 
 METHODS = ("GIIL-ZS", "GIIL-ZS (demo 0)", "GIIL-FT")  # a cell's columns; GIIL-ZS (demo 0) is the goal GIIL-FT starts from
 BASELINES = {"genrl": "GenRL", "aime-nob": "AIME-NoB"}  # --methods name -> method of the rows (genrl.py, aime_nob.py)
+ONLINE = "GIIL-online"  # ours, after Sec. 6 (online.py): shown where its rows exist, beside the GIIL-ZS (demo 0) it starts from
 
 # The paper's normalised scores, per setting (SE-SV, SE-CV, CE-SV, CE-CV) the columns PAPER_METHODS: Tables 1-2 ("all")
 # and 4-11 (per task), mean only
@@ -52,13 +55,29 @@ def load_results(run_dir):
     return list(rows.values())
 
 
-def result_config(ic, method):
-    """The ImitateConfig fields a result depends on: evaluation for the zero-shot columns, finetuning too for GIIL-FT."""
+def result_config(ic, method, oc=None):
+    """The ImitateConfig fields a result depends on: evaluation for the zero-shot columns, finetuning too for GIIL-FT,
+    the OnlineConfig oc's too for GIIL-online."""
     fields = dataclasses.asdict(ic)
     if not fields["act_temperature"]:  # rows made before the field acted on the mean, as 0 does: they still count
         del fields["act_temperature"]
-    keep = ("eval_episodes", "eval_steps", "act_temperature") if method.startswith("GIIL-ZS") else tuple(k for k in fields if k not in ("seeds", "video"))
+    evaluation = ("eval_episodes", "eval_steps", "act_temperature")
+    if method == ONLINE:
+        return {**{k: fields[k] for k in evaluation if k in fields}, **{k: v for k, v in dataclasses.asdict(oc).items() if k != "seeds"}}
+    keep = evaluation if method.startswith("GIIL-ZS") else tuple(k for k in fields if k not in ("seeds", "video"))
     return {k: fields[k] for k in keep if k in fields}
+
+
+def finished(rows, demo, view, returns, configs):
+    """A cell's rows that count: made with the demos now on disk (their returns) and, for a method of `configs`, with
+    the settings configs[method] (result_config)."""
+    return [r for r in rows if r["demo"] == demo and r["view"] == view and r.get("demo_returns") == returns
+            and r["method"] in configs and r.get("config") == configs[r["method"]]]
+
+
+def cell_lock(run_dir, demo, view):
+    """The lock file of a cell while a process runs it (rundir.claim; tables.table, imitate.py --demo)."""
+    return os.path.join(run_dir, "imitate", f"{demo}_{view}.lock")
 
 
 def cells(agent):
@@ -91,38 +110,45 @@ def table(run_dir, ic, settings=SETTINGS, demos_per_cell=10, shard=(0, 1), metho
     of mixing old and new results."""
     import imitate  # the cells it runs (imitate.py imports this module)
 
-    unknown = [m for m in methods if m != "giil" and m not in BASELINES]
+    unknown = [m for m in methods if m not in ("giil", "online") and m not in BASELINES]
     if unknown:
-        raise ValueError(f"--methods {','.join(unknown)}: choose from giil, {', '.join(BASELINES)}")
+        raise ValueError(f"--methods {','.join(unknown)}: choose from giil, online, {', '.join(BASELINES)}")
+    oc = online.OnlineConfig(**online.PRESETS[ic.preset])
     rundir.check_flags(ic)
     baselines = baseline_configs(ic.preset, BASELINES)  # their finished cells are shown whichever methods run now
     cfgs = train.load_run(run_dir)[0]
     agent, shown = cfgs["train"].env, []
-    config = lambda m: baselines[m][2] if m in baselines else result_config(ic, m)
-    finished = lambda rows, demo, view, returns: [  # a cell's rows that count
-        r for r in rows if r["demo"] == demo and r["view"] == view and r.get("demo_returns") == returns
-        and (r["method"] in METHODS or r["method"] in baselines) and r.get("config") == config(r["method"])]
+    configs = {**{m: result_config(ic, m, oc) for m in METHODS + (ONLINE,)}, **{m: b[2] for m, b in baselines.items()}}
     # the shards split the cells of `settings`, so that none is left idle; a cell left out runs nothing, its finished rows still count
     runs_here = [cell for cell in cells(agent) if cell[1] in settings][shard[0]::shard[1]]
     for task, where in cells(agent):
         demo, view = demo_of(agent, task, where)
         run_now = (task, where) in runs_here
-        folder = imitate.demo_folder(cfgs, demo, view) if run_now else os.path.join(cfgs["train"].data, "demos", f"{demo}_{view}")
-        if not os.path.isdir(folder):
-            continue
-        returns = [round(e["return"], 3) for e in collect.load_folder(folder, ())]
-        done = {(r["method"], r["seed"]) for r in finished(load_results(run_dir), demo, view, returns)}
-        count = lambda m: sum(method == m for method, _ in done)
-        zs, ft = count("GIIL-ZS") < demos_per_cell, min(count("GIIL-FT"), count("GIIL-ZS (demo 0)")) < ic.seeds
-        if (zs or ft) and run_now and "giil" in methods:  # only the seeds missing (a cell cut off goes on where it was)
-            imitate.imitate(run_dir, demo, view, ft, ic, zero_shot=zs, done=done)
-        for name, method in BASELINES.items():
-            module, cfg, _ = baselines[method]
-            if count(method) < cfg.seeds and run_now and name in methods:
-                module.run_cell(run_dir, demo, view, cfg)
-        shown.append((demo, view, returns))
+        # one process at a time runs a cell (its lock file, rundir.claim): a second table process without --shard, or
+        # with shards that overlap, skips the cells another one is running; their rows count once written
+        with rundir.claim(cell_lock(run_dir, demo, view)) if run_now else contextlib.nullcontext() as other:
+            if other:
+                print(f"{demo} ({view} view): process {other} is running this cell now ({cell_lock(run_dir, demo, view)}): skipped here")
+            run_now = run_now and not other
+            folder = imitate.demo_folder(cfgs, demo, view) if run_now else os.path.join(cfgs["train"].data, "demos", f"{demo}_{view}")
+            if not os.path.isdir(folder):
+                continue
+            returns = [round(e["return"], 3) for e in collect.load_folder(folder, ())]
+            done = {(r["method"], r["seed"]) for r in finished(load_results(run_dir), demo, view, returns, configs)}
+            count = lambda m: sum(method == m for method, _ in done)
+            zs, ft = count("GIIL-ZS") < demos_per_cell, min(count("GIIL-FT"), count("GIIL-ZS (demo 0)")) < ic.seeds
+            # GIIL-online's candidates are GIIL-ZS's goals: its column comes with them (and its curve is read from them)
+            zs, ft = zs and ("giil" in methods or "online" in methods), ft and "giil" in methods
+            on = "online" in methods and min(count(ONLINE), count("GIIL-ZS (demo 0)")) < oc.seeds
+            if (zs or ft or on) and run_now:  # only the seeds missing (a cell cut off goes on where it was)
+                imitate.imitate(run_dir, demo, view, ft, ic, zero_shot=zs, done=done, online_cfg=oc if on else None)
+            for name, method in BASELINES.items():
+                module, cfg, _ = baselines[method]
+                if count(method) < cfg.seeds and run_now and name in methods:
+                    module.run_cell(run_dir, demo, view, cfg)
+            shown.append((demo, view, returns))
     rows = load_results(run_dir)  # read once all cells ran: the rows other shards appended meanwhile count too
-    text = markdown_tables(agent, [r for cell in shown for r in finished(rows, *cell)])
+    text = markdown_tables(agent, [r for cell in shown for r in finished(rows, *cell, configs)])
     path = os.path.join(run_dir, "tables.md")
     rundir.atomic_write(path, lambda f: f.write(text.encode()))
     print(text)
@@ -135,21 +161,24 @@ def markdown_tables(agent, rows):
     def cell(scores):
         return f"{np.mean(scores):.1f} +- {evaluate.stderr(scores):.1f}" if scores else "-"
 
-    methods = METHODS + tuple(m for m in BASELINES.values() if any(r["method"] == m for r in rows))
+    methods = METHODS + tuple(m for m in (ONLINE, *BASELINES.values()) if any(r["method"] == m for r in rows))
+    paired = ("GIIL-FT",) + ((ONLINE,) if ONLINE in methods else ())  # each minus GIIL-ZS (demo 0), seed by seed
     paper_methods = [m for m in methods if m in PAPER_METHODS]  # the paper's columns of the methods shown
     out = []
     for task in ("all",) + envs.TASKS:
         title = f"{agent} agent, {'all tasks (as Table 1/2)' if task == 'all' else task}: normalised score, mean +- s.e."
-        out += [f"### {title}", "", "| setting | " + " | ".join(f"{m} (ours)" for m in methods) + " | FT - ZS (demo 0), paired | "
-                + " | ".join(f"{m} (paper)" for m in paper_methods) + " |", "|---|" + "---|" * (len(methods) + 1 + len(paper_methods))]
+        out += [f"### {title}", "", "| setting | " + " | ".join(f"{m} (ours)" for m in methods) + " | "
+                + " | ".join(f"{m.removeprefix('GIIL-')} - ZS (demo 0), paired" for m in paired) + " | "
+                + " | ".join(f"{m} (paper)" for m in paper_methods) + " |", "|---|" + "---|" * (len(methods) + len(paired) + len(paper_methods))]
         mine = lambda m, ws: {(r["demo"], r["view"], r["seed"]): r["score"] for r in rows
                               if r["method"] == m and r["setting"] in ws and (task == "all" or r["task"] == task)}
         # "w/o SE-SV" the paper's way: the mean over the other three settings' results
         for name, ws in [(w, [w]) for w in SETTINGS] + [("Average", SETTINGS), ("Average w/o SE-SV", SETTINGS[1:])]:
             paper = [np.mean([PAPER[agent][task][SETTINGS.index(w)][PAPER_METHODS.index(m)] for w in ws]) for m in paper_methods]
-            ft, zs0 = mine("GIIL-FT", ws), mine("GIIL-ZS (demo 0)", ws)
-            gain = [ft[k] - zs0[k] for k in ft if k in zs0]  # what finetuning adds: the same evaluation seeds, seed by seed
-            out.append(f"| {name} | " + " | ".join(cell(list(mine(m, ws).values())) for m in methods) + f" | {cell(gain)} | "
-                       + " | ".join(f"{p:.2f}" for p in paper) + " |")
+            zs0 = mine("GIIL-ZS (demo 0)", ws)
+            # what finetuning (or online refinement) adds: the same evaluation seeds, seed by seed
+            gains = [[v - zs0[k] for k, v in mine(m, ws).items() if k in zs0] for m in paired]
+            out.append(f"| {name} | " + " | ".join(cell(list(mine(m, ws).values())) for m in methods) + " | "
+                       + " | ".join(cell(g) for g in gains) + " | " + " | ".join(f"{p:.2f}" for p in paper) + " |")
         out.append("")
     return "\n".join(out)
