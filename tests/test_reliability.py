@@ -1,8 +1,10 @@
 """Reliability (smoke preset): kill -9 and --resume, committed expert weights, partial or mixed data, divergence,
-numeric flags, run directories, corrupt files, weights-only checkpoints."""
+numeric flags, run directories, corrupt files, weights-only checkpoints, and commands that exited 0 doing the wrong
+thing (issue 67: another body's agent, abbreviated or idle flags, two table processes, Ctrl-C, SIGTERM, empty files)."""
 import glob
 import json
 import os
+import runpy
 import shutil
 import signal
 import subprocess
@@ -390,3 +392,177 @@ def test_fast_matmul_keeps_fp32_results():
         assert torch.allclose(x.grad[:, 1:].double(), w.double().sum(0).expand(16, 49, -1), rtol=1e-5, atol=1e-4)
     finally:
         torch.backends.mkldnn.matmul.fp32_precision = "none"
+
+
+# --- 8. runs that exited 0 and did the wrong thing (issue 67): each ends right or in one line naming the fix ---
+
+def test_a_run_folder_holding_another_agent_is_refused(smoke_run, tmp_path, monkeypatch):
+    """agents/<body> and runs/<env>_<obs>_<preset>_s<seed> hold what their names say, an explicit --run the --env given."""
+    ckpt = torch.load(os.path.join(smoke_run, "checkpoint.pt"), weights_only=True)  # walker, state, smoke preset, seed 0
+    os.makedirs(tmp_path / "agents" / "walker")
+    torch.save(dict(ckpt, config={**ckpt["config"], "train": {**ckpt["config"]["train"], "env": "stickman"}}), tmp_path / "agents" / "walker" / "checkpoint.pt")
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.setattr(rundir, "use_threads", lambda threads: None)  # imitate.main would set this process's torch threads
+    small = ["--steps", "1", "--seeds", "1", "--eval-episodes", "1", "--eval-steps", "2"]  # should it run
+    monkeypatch.setattr(sys, "argv", ["imitate.py", "--demo", "stickman_run", "--finetune"] + small)
+    with pytest.raises(ValueError, match=r"^agents/walker/checkpoint.pt holds a stickman agent, but agents/walker is the shipped walker agent's "
+                                         r"folder: put the walker agent back \(`git checkout agents/walker/checkpoint.pt`\)"):
+        imitate.main()
+    os.makedirs(tmp_path / "runs" / "walker_state_cpu_s0")
+    shutil.copy(os.path.join(smoke_run, "checkpoint.pt"), tmp_path / "runs" / "walker_state_cpu_s0")
+    with pytest.raises(ValueError, match=r"holds the run walker_state_smoke_s0 \(body, observations, preset, seed\), not the walker_state_cpu_s0 "
+                                         r"that its folder is named: move the folder to runs/walker_state_smoke_s0$"):
+        imitate.main()
+    monkeypatch.setattr(sys, "argv", ["imitate.py", "--demo", "stickman_run", "--run", smoke_run, "--env", "stickman", "--eval-steps", "2"])
+    with pytest.raises(ValueError, match=r"^--env stickman, but .*checkpoint.pt holds a walker agent: pass --env walker, or a --run of a stickman agent$"):
+        imitate.main()
+    assert sorted(os.listdir(tmp_path / "agents" / "walker")) == ["checkpoint.pt"] and not glob.glob(str(tmp_path / "runs" / "*" / "*.jsonl"))
+    with pytest.raises(ValueError, match="holds a stickman agent"):
+        tables.table(os.path.join("agents", "walker"), SMOKE_IMITATE)
+    with pytest.raises(ValueError, match=r"^--export agents/stickman: .* trained a walker agent; export it to agents/walker$"):
+        rundir.export_agent(smoke_run, os.path.join("agents", "stickman"))  # how such a folder comes about
+    assert not os.path.exists(os.path.join("agents", "stickman"))
+
+
+def test_a_missing_checkpoint_names_the_command_for_its_body_and_preset(tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.setattr(rundir, "use_threads", lambda threads: None)
+    for run, command in ((os.path.join("runs", "stickman_state_smoke_s0"), "python train.py --env stickman --preset smoke"),
+                         (os.path.join("runs", "walker_pixels_cpu_s2"), "python train.py --env walker --obs pixels --seed 2"),
+                         ("elsewhere", "python train.py --env walker --run-dir elsewhere")):
+        with pytest.raises(FileNotFoundError, match=rf"^no checkpoint at {run}/checkpoint.pt: train one with `{command}`$"):
+            train.load_run(run)
+    monkeypatch.setattr(sys, "argv", ["imitate.py", "--demo", "walker_run", "--preset", "smoke", "--env", "stickman"])
+    with pytest.raises(FileNotFoundError, match=r"train one with `python train.py --env stickman --preset smoke`$"):
+        imitate.main()
+    assert not os.path.exists("runs/stickman_state_smoke_s0")
+
+
+@pytest.mark.parametrize("script, argv, message", [
+    # abbreviations (argparse's prefix matching) are refused by every entry point: today's --he(lp) printed the help
+    *[(script, argv + ["--hel"], "unrecognized arguments: --hel") for script, argv in (
+        ("train.py", []), ("imitate.py", []), ("collect.py", []), ("experts.py", []), ("genrl.py", ["--demo", "walker_run"]),
+        ("aime_nob.py", ["--demo", "walker_run"]), ("evaluate.py", ["runs/x"]), ("bench.py", []), ("video_encoder.py", []), ("envs.py", []))],
+    ("imitate.py", ["--demo", "walker_run", "--finetune", "--seed", "3", "--threads", "0"], "unrecognized arguments: --seed 3"),
+    ("train.py", ["--pres", "smoke", "--steps", "0"], "unrecognized arguments: --pres smoke"),
+    # a flag that does nothing in the mode chosen
+    ("imitate.py", ["--demo", "stickman_run", "--methods", "genrl"], "--methods works with --table only: add --table, or drop it"),
+    ("imitate.py", ["--demo", "stickman_run", "--settings", "CE-SV"], "--settings works with --table only"),
+    ("imitate.py", ["--demo", "stickman_run", "--shard", "0/2"], "--shard works with --table only"),
+    ("imitate.py", ["--table", "--demo", "stickman_run"], "--demo does nothing with --table (it runs every demo and view): drop it"),
+    ("imitate.py", ["--table", "--finetune"], "--finetune does nothing with --table"),
+    ("imitate.py", ["--demo", "stickman_run", "--seeds", "3"], "--seeds sets GIIL-FT: add --finetune, or drop it"),
+    ("train.py", ["--evaluate", "--resume"], "--resume is for training: it does nothing with --export or --evaluate"),
+    ("collect.py", ["--features", "--data", "no_data", "--up-first"], "--task-episodes, --history-from and --up-first shape D_body: add --env BODY"),
+    ("experts.py", ["--history"], "--history works with --eval only"),
+])
+def test_flags_act_by_their_whole_name_and_only_where_they_act(script, argv, message, monkeypatch, capsys):
+    monkeypatch.setattr(sys, "argv", [script] + argv)
+    with pytest.raises(SystemExit) as exit:
+        runpy.run_path(os.path.join(ROOT, script), run_name="__main__")
+    assert exit.value.code == 2 and capsys.readouterr().err.splitlines()[-1].startswith(f"{script}: error: {message}")
+
+
+def test_a_cell_runs_in_one_process_at_a_time(smoke_run, tmp_path, monkeypatch):
+    """Two --table processes without --shard: the second skips the cells the first is running; a --demo run of such a
+    cell stops with one line."""
+    run = copy_run(smoke_run, tmp_path)
+    lock = tables.cell_lock(run, "walker_stand", "side")
+    other = subprocess.Popen(["sleep", "60"])
+    try:
+        os.makedirs(os.path.dirname(lock))
+        with open(lock, "w") as f:
+            f.write(str(other.pid))
+        tables.table(run, SMOKE_IMITATE, settings=("SE-SV",), demos_per_cell=2, shard=(0, 4))  # that cell alone
+        assert not os.path.exists(os.path.join(run, "results.jsonl")) and open(lock).read() == str(other.pid)
+        monkeypatch.setattr(rundir, "use_threads", lambda threads: None)
+        monkeypatch.setattr(sys, "argv", ["imitate.py", "--demo", "walker_stand", "--run", run, "--preset", "smoke"])
+        with pytest.raises(ValueError, match=rf"^process {other.pid} is running walker_stand \(side view\) on .*run now .*walker_stand_side.lock\): "
+                                             r"wait for it to end; the same command then goes on from its rows$"):
+            imitate.main()
+    finally:
+        other.kill()
+        other.wait()
+    tables.table(run, SMOKE_IMITATE, settings=("SE-SV",), demos_per_cell=2, shard=(0, 4))  # its process gone: the lock is stale
+    assert len(rundir.read_jsonl(os.path.join(run, "results.jsonl"))) == 2 + 2 * SMOKE_IMITATE.seeds and not os.path.exists(lock)
+
+
+def test_paper_preset_needs_a_gpu_or_allow_cpu_and_sigterm_releases_the_lock(smoke_data, tmp_path, monkeypatch):
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
+    flags = ["train.py", "--preset", "paper", "--data", smoke_data, "--run-dir", str(tmp_path / "paper")]
+    monkeypatch.setattr(sys, "argv", flags)
+    with pytest.raises(ValueError, match=r"^--preset paper is sized for a GPU and this machine has none: .*~6 h on one.*; pass --preset cpu, or --allow-cpu"):
+        train.main()
+    monkeypatch.setattr(sys, "argv", flags + ["--allow-cpu", "--steps", "0"])
+    with pytest.raises(ValueError, match="--steps 0: must be >= 1"):  # past the check
+        train.main()
+    assert not os.path.exists(tmp_path / "paper")
+    # `timeout` sends SIGTERM: the run's finally blocks run (its lock goes), its last checkpoint stays whole
+    run = str(tmp_path / "term")
+    script = KILLED_TRAIN.replace('''            with open(f"{path}.{os.getpid()}.tmp", "wb") as f:
+                f.write(b"half a checkpoint")
+            os.kill(os.getpid(), signal.SIGKILL)''', "            os.kill(os.getpid(), signal.SIGTERM)")
+    assert script != KILLED_TRAIN
+    out = subprocess.run([sys.executable, "-c", script, "--preset", "smoke", "--data", smoke_data, "--run-dir", run], cwd=ROOT, capture_output=True, text=True)
+    assert out.returncode == 130 and "Traceback" not in out.stderr, out.stderr[-2000:]
+    assert out.stderr.splitlines()[-1] == "interrupted: the run folder keeps its last checkpoint: the same command with --resume goes on from it"
+    assert sorted(os.listdir(run)) == ["checkpoint.pt", "metrics.jsonl"] and torch.load(os.path.join(run, "checkpoint.pt"), weights_only=True)["step"] == 3
+
+
+def test_ctrl_c_then_the_same_imitate_command_goes_on_without_duplicates(smoke_run, tmp_path):
+    run = copy_run(smoke_run, tmp_path)
+    interrupted = ("import os, runpy, signal, sys, ot_reward\n"  # Ctrl-C in GIIL-FT seed 0's first update
+                   "ot_reward.ot_reward = lambda *a, **k: os.kill(os.getpid(), signal.SIGINT)\n"
+                   "sys.argv = ['imitate.py'] + sys.argv[1:]\nrunpy.run_path('imitate.py', run_name='__main__')\n")
+    flags = ["--demo", "walker_run", "--finetune", "--preset", "smoke", "--run", run]
+    out = subprocess.run([sys.executable, "-c", interrupted] + flags, cwd=ROOT, capture_output=True, text=True)
+    assert out.returncode == 130 and "Traceback" not in out.stderr and "Exception ignored" not in out.stderr, out.stderr[-2000:]
+    assert out.stderr.splitlines()[-1] == "interrupted: every evaluation finished is in the run's results.jsonl: the same command goes on from there"
+    path = os.path.join(run, "results.jsonl")
+    assert [(r["method"], r["seed"]) for r in rundir.read_jsonl(path)] == [("GIIL-ZS", 0), ("GIIL-ZS", 1), ("GIIL-ZS (demo 0)", 0)]
+    ic = imitate.ImitateConfig(**imitate.PRESETS["smoke"], preset="smoke")  # what --preset smoke makes
+    rows = imitate.imitate(run, "walker_run", "side", True, ic)
+    assert [(r["method"], r["seed"]) for r in rows] == [("GIIL-FT", 0), ("GIIL-ZS (demo 0)", 1), ("GIIL-FT", 1)]
+    assert imitate.imitate(run, "walker_run", "side", True, ic) == [] and len(rundir.read_jsonl(path)) == 6
+
+
+def test_an_empty_episode_file_is_collected_again(smoke_data, tmp_path):
+    data = str(tmp_path / "data")
+    for view in ("side", "diagonal"):
+        shutil.copytree(os.path.join(smoke_data, "demos", f"walker_run_{view}"), os.path.join(data, "demos", f"walker_run_{view}"))
+    path = os.path.join(data, "demos", "walker_run_side", "01.npz")
+    before = dict(np.load(path))
+    open(path, "wb").close()  # zero bytes: a disk that was full, a copy cut off
+    collect.collect_demos(collect.CollectConfig(**collect.PRESETS["smoke"]), data, workers=1, demos=[("walker", "run")])
+    after = dict(np.load(path))
+    assert all(np.array_equal(after[k], before[k]) for k in ("state", "action", "pixels")) and np.allclose(after["p"], before["p"], atol=1e-5)
+    assert sorted(os.listdir(os.path.dirname(path))) == ["00.npz", "01.npz"]
+
+
+def test_a_video_cut_off_half_way_leaves_the_old_file(tmp_path, monkeypatch):
+    path = str(tmp_path / "walker_run_side_GIIL-FT_s0.mp4")
+    with open(path, "wb") as f:
+        f.write(b"the video of an earlier run")
+    frames = np.zeros((6, 64, 64, 3), np.uint8)
+    writer = imitate.cv2.VideoWriter
+
+    class Dying:  # a writer killed after its second frame
+        def __init__(self, *args):
+            self.writer, self.frames = writer(*args), 0
+
+        def __getattr__(self, name):
+            return getattr(self.writer, name)
+
+        def write(self, frame):
+            self.frames += 1
+            if self.frames == 3:
+                raise RuntimeError("killed")
+            self.writer.write(frame)
+
+    monkeypatch.setattr(imitate.cv2, "VideoWriter", Dying)
+    with pytest.raises(RuntimeError, match="killed"):
+        imitate.write_video(path, frames, frames)
+    assert open(path, "rb").read() == b"the video of an earlier run" and os.listdir(tmp_path) == [os.path.basename(path)]
+    monkeypatch.setattr(imitate.cv2, "VideoWriter", writer)
+    imitate.write_video(path, frames, frames)
+    assert open(path, "rb").read(12)[4:8] == b"ftyp" and os.listdir(tmp_path) == [os.path.basename(path)]
