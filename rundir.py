@@ -32,7 +32,6 @@ import numpy as np
 import torch
 
 import envs
-import world_model
 
 
 # Ranges of the numeric flags that are not counts or sizes (those are >= 1): (low, high), None = no bound. Learning
@@ -206,12 +205,10 @@ def run_checkpoint(run_dir, device="cpu", env=None):
     if not os.path.exists(path):
         if shipped:
             raise FileNotFoundError(f"no checkpoint at {path}: restore the shipped agent with `git checkout {path}`")
-        body, preset, seed = env or want.get("env", "walker"), want.get("preset", "cpu"), want.get("seed", "0")
-        usual_obs = world_model.PRESETS.get(preset, {}).get("obs", world_model.WorldModelConfig.obs)
-        obs = want.get("obs", usual_obs)
-        flags = [f"--env {body}"] + [f"--{k} {v}" for k, v, usual in (("preset", preset, "cpu"), ("obs", obs, usual_obs), ("seed", seed, "0"))
-                                     if v != usual]
-        if folder != os.path.join("runs", f"{body}_{obs}_{preset}_s{seed}"):  # not where those flags train
+        # the flags that train into this folder: those its name encodes (--obs always: its default is the preset's)
+        body = env or want.get("env", "walker")
+        flags = [f"--env {body}"] + [f"--{k} {want[k]}" for k, usual in (("obs", None), ("preset", "cpu"), ("seed", "0")) if want.get(k, usual) != usual]
+        if not named or folder != os.path.join("runs", "{}_{obs}_{preset}_s{seed}".format(body, **want)):
             flags.append(f"--run-dir {run_dir}")
         raise FileNotFoundError(f"no checkpoint at {path}: train one with `python train.py {' '.join(flags)}`")
     ckpt = load_checkpoint(path, device)

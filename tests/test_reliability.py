@@ -427,13 +427,13 @@ def test_a_run_folder_holding_another_agent_is_refused(smoke_run, tmp_path, monk
 def test_a_missing_checkpoint_names_the_command_for_its_body_and_preset(tmp_path, monkeypatch):
     monkeypatch.chdir(tmp_path)
     monkeypatch.setattr(rundir, "use_threads", lambda threads: None)
-    for run, command in ((os.path.join("runs", "stickman_state_smoke_s0"), "python train.py --env stickman --preset smoke"),
+    for run, command in ((os.path.join("runs", "stickman_state_smoke_s0"), "python train.py --env stickman --obs state --preset smoke"),
                          (os.path.join("runs", "walker_pixels_cpu_s2"), "python train.py --env walker --obs pixels --seed 2"),
                          ("elsewhere", "python train.py --env walker --run-dir elsewhere")):
         with pytest.raises(FileNotFoundError, match=rf"^no checkpoint at {run}/checkpoint.pt: train one with `{command}`$"):
             train.load_run(run)
     monkeypatch.setattr(sys, "argv", ["imitate.py", "--demo", "walker_run", "--preset", "smoke", "--env", "stickman"])
-    with pytest.raises(FileNotFoundError, match=r"train one with `python train.py --env stickman --preset smoke`$"):
+    with pytest.raises(FileNotFoundError, match=r"train one with `python train.py --env stickman --obs state --preset smoke`$"):
         imitate.main()
     assert not os.path.exists("runs/stickman_state_smoke_s0")
 
