@@ -20,6 +20,7 @@ import torch
 
 import evaluate
 import ot_reward
+import rundir
 
 
 @dataclasses.dataclass
@@ -78,3 +79,58 @@ def refine_goal(models, cfgs, make_env, goals, demo_p, cfg, seed, encoder, steps
 
     chosen, log = successive_halving(score, len(goals), cfg, seed)
     return goals[chosen], chosen, log
+
+
+def choice_curve(log, n_candidates):
+    """The goal GIIL-online would choose after each of its episodes: [index after 0, 1, ..., len(log) episodes], 0 (the
+    first demo's zero-shot goal, GIIL-FT's start) before any; then the best mean OT score so far (ties: lower index)."""
+    curve, scores = [0], {}
+    for index, _, score in log:
+        scores.setdefault(index, []).append(score)
+        curve.append(min(scores, key=lambda k: (-np.mean(scores[k]), k)))
+    return curve
+
+
+def plot_curves(rows, path):
+    """Score against environment steps, one line per cell: the true score (its GIIL-ZS row, evaluated on seeds the search
+    never used) of the goal chosen after each episode, mean over GIIL-online's seeds; the final evaluations as dots."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(6, 3.6))
+    cells = sorted({(r["demo"], r["view"]) for r in rows if r["method"] == "GIIL-online"})
+    for demo, view in cells:
+        zs = {r["seed"]: r["score"] for r in rows if r["method"] == "GIIL-ZS" and (r["demo"], r["view"]) == (demo, view)}
+        runs = [r for r in rows if r["method"] == "GIIL-online" and (r["demo"], r["view"]) == (demo, view)]
+        curves = np.array([[zs[k] for k in choice_curve(r["ot_log"], len(zs))] for r in runs])  # (seeds, episodes + 1)
+        steps = np.arange(curves.shape[1]) * runs[0]["env_steps"] / (curves.shape[1] - 1)
+        line, = ax.plot(steps, curves.mean(0), label=f"{runs[0]['setting']} {runs[0]['task']} ({demo}, {view})")
+        ax.plot([steps[-1]] * len(runs), [r["score"] for r in runs], "o", color=line.get_color(), alpha=0.5)
+        ax.axhline(np.mean(list(zs.values())), color=line.get_color(), ls=":", lw=1)
+    ax.set_xlabel("environment steps (agent steps) of the search")
+    ax.set_ylabel("normalised score of the chosen goal")
+    ax.set_title(f"GIIL-online, {rows[0]['agent']} (dotted: GIIL-ZS, the mean over the demos' goals)", fontsize=9)
+    ax.legend(fontsize=7)
+    fig.tight_layout()
+    fig.savefig(path, dpi=90)
+    plt.close(fig)
+    return path
+
+
+if __name__ == "__main__":
+    import argparse
+
+    parser = argparse.ArgumentParser(description="GIIL-online's curve: score of the chosen goal against environment steps, from a "
+                                     "run's results.jsonl (python imitate.py --demo D --online, or --table --methods online)", allow_abbrev=False)
+    parser.add_argument("run")
+    parser.add_argument("--demo", help="only this demo's cells, e.g. stickman_run (default: every cell with GIIL-online rows)")
+    parser.add_argument("--view", help="only this camera's cells")
+    parser.add_argument("--out", help="the PNG (default: <run>/online_curve.png)")
+    args = parser.parse_args()
+    rows = [r for r in rundir.read_jsonl(f"{args.run}/results.jsonl") if r["demo"] == (args.demo or r["demo"]) and r["view"] == (args.view or r["view"])]
+    if not any(r["method"] == "GIIL-online" for r in rows):
+        raise SystemExit(f"error: no GIIL-online rows in {args.run}/results.jsonl for those cells: run `python imitate.py --demo "
+                         f"{args.demo or 'stickman_run'} --online --run {args.run}` first")
+    print(f"wrote {plot_curves(rows, args.out or f'{args.run}/online_curve.png')}")

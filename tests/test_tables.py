@@ -119,7 +119,7 @@ def test_baselines_join_the_table_as_columns_and_are_not_rerun(smoke_run, tmp_pa
     tables.table(run, smoke, methods=("giil",), **one_cell)
     assert {r["method"] for r in tables.load_results(run)[len(rows):]} == {"GIIL-ZS", "GIIL-ZS (demo 0)", "GIIL-FT"}
     assert "| GenRL (ours) | AIME-NoB (ours) |" in open(os.path.join(run, "tables.md")).read()  # the baselines' cells stay
-    with pytest.raises(ValueError, match="--methods dreamer: choose from giil, genrl, aime-nob"):
+    with pytest.raises(ValueError, match="--methods dreamer: choose from giil, online, genrl, aime-nob"):
         tables.table(run, SMOKE, methods=("giil", "dreamer"))
 
 
