@@ -33,10 +33,10 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
+import checkpoint
 import collect
 import envs
 import genrl
-import imitate
 import ot_reward
 import policy
 import rundir
@@ -184,7 +184,7 @@ def run_cell(run_dir, demo, view, nc, data=None):
         check_same_encoder(cell["ckpt"]["encoder"], encoder.name, f"{run_dir}/checkpoint.pt and its --encoder {cell['cfgs']['train'].encoder!r}")
         demos = [d["p"] for d in cell["demos"]]
         demo_p = torch.as_tensor(np.stack([p[: min(len(q) for q in demos)] for p in demos]), device=cell["device"])  # (K, M, D)
-        body = imitate.body_segments(cell["cfgs"]) if round(nc.body_ratio * cell["cfgs"]["wm"].batch) else None
+        body = checkpoint.body_segments(cell["cfgs"]) if round(nc.body_ratio * cell["cfgs"]["wm"].batch) else None
     for seed in todo:
         t0 = time.time()
         actor, wm, _ = train_seed(cell, nc, body, encoder, demo_p, seed)

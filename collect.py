@@ -36,9 +36,12 @@ import torch
 from tqdm import tqdm
 
 import envs
+import experts
 import rundir
+from envs import BODY_TASKS
+from presets import DATA
+from video_encoder import check_same_encoder, load_encoder
 
-BODY_TASKS = ("stand", "walk", "run")  # the tasks whose experts' histories enter D_body; jump is held out
 KEYS = {"state": np.float32, "pixels": np.uint8, "action": np.float32, "reward": np.float32, "is_first": np.bool_, "p": np.float32}
 META = ("encoder", "body", "task", "view", "source", "return")
 COMPLETE = "collection.json"  # written into data/<body>/ once all of D_body is on disk: its CollectConfig
@@ -47,7 +50,7 @@ COMPLETE = "collection.json"  # written into data/<body>/ once all of D_body is 
 @dataclass
 class CollectConfig:
     explore_episodes: int = 80  # D_body exploration episodes (paper ~2000)
-    # D_body episodes per task in BODY_TASKS (paper 1000). 80 : 480 = 1 : 6 (the paper's 2 : 3 is 80 : 120, our first
+    # D_body episodes per task in envs.BODY_TASKS (paper 1000). 80 : 480 = 1 : 6 (the paper's 2 : 3 is 80 : 120, our first
     # default): each doubling raised goal reaching, paired over 3 training seeds (docs/experiments.md, Phase 1):
     # 40 -> 80 per task walker +8.5 +- 5.1, stickman +11.0 +- 1.6; 80 -> 160 stickman +7.2 +- 1.8 (20.1 -> 27.3),
     # walker +8.0 +- 1.7 (59.6 -> 67.6, against the 80-per-task runs of earlier code)
@@ -81,16 +84,11 @@ def preset_config(preset):
     return CollectConfig(**PRESETS[preset])
 
 
-# Where each preset's datasets go by default (--data): the smoke preset's 20-step episodes never share a folder with the
-# 500-step ones of the others (cpu and paper episodes are alike: paper's D_body extends cpu's)
-DATA = {"smoke": os.path.join("data", "smoke"), "cpu": "data", "paper": "data"}
 UP, UP_HOLD, UP_MAX = 0.8, 20, 200  # up_first: "up" is posture >= UP held UP_HOLD steps; the final expert acts at most UP_MAX
 
 
 def episode_jobs(body, cfg, data):
     """D_body episodes as (path, job) pairs; the seed of each episode is fixed by its name."""
-    import experts
-
     jobs = []
     for k in range(cfg.explore_episodes):
         jobs.append(dict(kind="explore", body=body, task="stand", index=k, snapshot=None))
@@ -112,8 +110,6 @@ def episode_jobs(body, cfg, data):
 def demo_jobs(cfg, data, demos=None):
     """D_demo: one simulation per (body, task, index), written to both views' folders; `demos` limits the (body, task)
     pairs (default: all)."""
-    import experts
-
     out = []
     for body, task in demos or [(b, t) for b in envs.BODIES for t in envs.TASKS]:
         if not os.path.exists(experts.expert_path(body, task)):
@@ -141,8 +137,6 @@ def default_matmul():
 
 def simulate(job):
     """Run one episode; returns the keys of every view's file (without features)."""
-    import experts
-
     torch.set_num_threads(1)
     rng = np.random.default_rng(job["seed"])
     env = envs.make_env(job["body"], job["task"], seed=int(rng.integers(2**31)))
@@ -261,8 +255,6 @@ class Segments:
 def load_folder(folder, keys=tuple(KEYS), encoder=None):
     """All episodes of a folder, sorted by name. One collection only: features from two encoders, episodes of two
     lengths or arrays of two widths are an error naming both files."""
-    from video_encoder import check_same_encoder
-
     names = sorted(n for n in os.listdir(folder) if n.endswith(".npz") and not n.endswith(".tmp.npz")) if os.path.isdir(folder) else []
     if not names:
         raise FileNotFoundError(f"no episodes in {folder}: run `python collect.py` (see --help)")
@@ -284,9 +276,7 @@ def _worker(item):
     """Simulate, compute features, write the views not on disk yet (a file written whole is never replaced); returns
     the paths written (a pool worker, one episode)."""
     paths, job, encoder_spec = item
-    from video_encoder import load_encoder
-
-    encoder = _worker_encoder(load_encoder, encoder_spec)
+    encoder = _worker_encoder(encoder_spec)
     written = [(path, episode) for path, episode in zip(paths, simulate(job)) if not zipfile.is_zipfile(path)]
     for path, episode in written:
         save_episode(path, dict(episode, p=encoder(episode["pixels"]), encoder=encoder.name))
@@ -296,7 +286,7 @@ def _worker(item):
 _ENCODERS = {}
 
 
-def _worker_encoder(load_encoder, spec):
+def _worker_encoder(spec):
     """One encoder per worker process, loaded on first use."""
     if spec not in _ENCODERS:
         _ENCODERS[spec] = load_encoder(spec)
@@ -333,8 +323,6 @@ def run_jobs(jobs, encoder_spec, workers, desc):
 
 def recompute_features(data, encoder_spec):
     """Second pass: rewrite `p` of every episode under `data` whose encoder differs from encoder_spec's."""
-    from video_encoder import load_encoder
-
     encoder = load_encoder(encoder_spec)
     paths = sorted(os.path.join(d, n) for d, _, names in os.walk(data) for n in names if n.endswith(".npz") and not n.endswith(".tmp.npz"))
     for path in tqdm(paths, desc=f"features ({encoder.name})"):
@@ -376,7 +364,7 @@ def main():
     parser.add_argument("--demos", action="store_true", help="collect D_demo: every body x task x view")
     parser.add_argument("--features", action="store_true", help="recompute video features of everything under --data")
     parser.add_argument("--preset", choices=PRESETS, default="cpu")
-    parser.add_argument("--data", default=None, help="default: data, or data/smoke for --preset smoke (collect.DATA)")
+    parser.add_argument("--data", default=None, help="default: data, or data/smoke for --preset smoke (presets.DATA)")
     parser.add_argument("--workers", type=int, default=os.cpu_count())
     parser.add_argument("--encoder", default="default", help="'default' or a TorchScript video model file (video_encoder.py)")
     parser.add_argument("--task-episodes", type=int, default=None, help="D_body episodes per task (default: the preset's)")

@@ -42,6 +42,7 @@ from dm_control.utils import rewards
 
 BODIES = ("walker", "stickman")
 TASKS = ("stand", "walk", "run", "jump")
+BODY_TASKS = ("stand", "walk", "run")  # the tasks of D_body (collect.py) and of the benchmark's average (evaluate.py); jump is held out
 VIEWS = ("side", "diagonal")
 SETTINGS = ("SE-SV", "SE-CV", "CE-SV", "CE-CV")  # Sec. 5: the demo's body and camera, same as/cross to the agent's
 

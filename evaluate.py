@@ -29,8 +29,6 @@ import envs
 import policy
 import rundir
 
-BODY_TASKS = ("stand", "walk", "run")  # the tasks of D_body, whose average is the benchmark's number (jump held out)
-
 
 @torch.no_grad()
 def run_episodes(env_list, models, goals, steps, obs_key, seed, render=False, random_actions=False, on_step=None, on_state=None, temperature=0.0):
@@ -162,8 +160,8 @@ def summary(scores):
     lines = [f"{'task':<22}{'policy':>16}{'random':>16}"]
     cell = lambda v: f"{np.mean(v):6.1f} +- {stderr(v):4.1f}"
     for task, s in scores.items():
-        lines.append(f"{task + (' (not in D_body)' if task not in BODY_TASKS else ''):<22}{cell(s['policy']):>16}{cell(s['random']):>16}")
-    inside = [t for t in BODY_TASKS if t in scores]
+        lines.append(f"{task + (' (not in D_body)' if task not in envs.BODY_TASKS else ''):<22}{cell(s['policy']):>16}{cell(s['random']):>16}")
+    inside = [t for t in envs.BODY_TASKS if t in scores]
     if inside:
         # the average of the task means; its s.e. from the per-task standard errors (independent episodes)
         mean = lambda k: np.mean([np.mean(scores[t][k]) for t in inside])
@@ -224,7 +222,7 @@ def across_runs(run_dirs):
             raise FileNotFoundError(f"no {path}: run `python train.py --evaluate --run-dir {run_dir}` first")
         scores = json.load(open(path))
         per_run[run_dir] = {t: float(np.mean(s["policy"])) for t, s in scores.items()}
-        per_run[run_dir]["average"] = float(np.mean([per_run[run_dir][t] for t in BODY_TASKS if t in scores]))
+        per_run[run_dir]["average"] = float(np.mean([per_run[run_dir][t] for t in envs.BODY_TASKS if t in scores]))
     columns = list(next(iter(per_run.values())))
     lines = ["| run | " + " | ".join(columns) + " |", "|---|" + "---|" * len(columns)]
     lines += [f"| {r} | " + " | ".join(f"{v[c]:.1f}" for c in columns) + " |" for r, v in per_run.items()]

@@ -29,7 +29,6 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-import collect
 import envs
 import rundir
 from sac import Actor, Critic, Replay, copy_member, sac_update, select_tasks
@@ -356,7 +355,7 @@ def main():
     if args.eval and args.history:
         print("| body | task | normalised score of each snapshot (training step: mean of 10 episodes) |\n|---|---|---|")
         for body in [args.body] if args.body else envs.BODIES:
-            for task in [t for t in args.tasks if t in collect.BODY_TASKS]:
+            for task in [t for t in args.tasks if t in envs.BODY_TASKS]:
                 scores = [f"{step // 1000}k: {envs.normalized_score(task, evaluate(body, task, step=step).mean()):.0f}" for step in history_steps(body, task)]
                 print(f"| {body} | {task} | {', '.join(scores)} |")
         return

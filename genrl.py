@@ -37,14 +37,13 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
+import checkpoint
 import collect
 import envs
 import evaluate
-import imitate
 import policy
 import rundir
 import tables
-import train
 from video_encoder import check_same_encoder
 
 METHOD = "GenRL"
@@ -162,7 +161,7 @@ def run_cell(run_dir, demo, view, gc, data=None):
     rows = []
     if todo:
         target = target_states(models, torch.as_tensor(cell["demos"][0]["p"], device=device), gc.target_len)
-        segments = imitate.body_segments(cfgs)
+        segments = checkpoint.body_segments(cfgs)
     for seed in todo:
         t0 = time.time()
         actor = train_policy(models, cfgs, gc, target, segments, seed, device)
@@ -179,12 +178,12 @@ def load_cell(run_dir, demo, view, data=None):
     """A phase-1 run and one demo folder (data/demos/<demo>_<view>): configs, models, the demos' features, task and
     setting. data: the data folder, default the run's."""
     device = "cuda" if torch.cuda.is_available() else "cpu"
-    cfgs, models, ckpt = train.load_run(run_dir, device)
+    cfgs, models, ckpt = checkpoint.load_run(run_dir, device)
     if data is not None:
         cfgs["train"] = dataclasses.replace(cfgs["train"], data=data)
     tc = cfgs["train"]
     rundir.fast_matmul()  # oneDNN where it is faster and still fp32 (rundir.py)
-    folder = imitate.demo_folder(cfgs, demo, view)
+    folder = checkpoint.demo_folder(cfgs, demo, view)
     demos = collect.load_folder(folder, ("p",))
     for d in demos:
         check_same_encoder(ckpt["encoder"], d["encoder"], d["path"])
@@ -192,7 +191,7 @@ def load_cell(run_dir, demo, view, data=None):
     envs._check_name("task", task, envs.TASKS)
     return {"run_dir": run_dir, "cfgs": cfgs, "models": models, "ckpt": ckpt, "device": device, "demo": demo, "view": view,
             "demos": demos, "demo_returns": [round(d["return"], 3) for d in demos], "task": task,
-            "setting": imitate.setting(tc.env, demo_body, view)}
+            "setting": tables.setting(tc.env, demo_body, view)}
 
 
 def evaluate_actor(cell, world_model, actor, episodes, steps, seed):
@@ -252,7 +251,7 @@ def cell_parser(description, cls, presets):
     parser = argparse.ArgumentParser(description=description, allow_abbrev=False)
     parser.add_argument("--demo", required=True, help="<demonstrator body>_<task>, e.g. stickman_run")
     parser.add_argument("--view", default="side", choices=envs.VIEWS, help="camera of the demo")
-    parser.add_argument("--run", default=train.default_run_dir("walker", "cpu"), help="the phase-1 run (train.py) whose world model is used")
+    parser.add_argument("--run", default=checkpoint.default_run_dir("walker", "cpu"), help="the phase-1 run (train.py) whose world model is used")
     parser.add_argument("--data", default=None, help="data folder with demos/ and D_body (default: the run's)")
     rundir.threads_flag(parser)
     add_config_flags(parser, cls, presets)

@@ -28,9 +28,9 @@ Choices where the paper is silent:
 Missing demos of the one body x task imitated are collected first (collect.py, the run's preset and data folder).
 """
 import argparse
+import contextlib
 import copy
 import dataclasses
-import fcntl
 import os
 import time
 
@@ -39,16 +39,18 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
+import aime_nob
+import checkpoint
 import cloning
 import collect
 import envs
 import evaluate
+import genrl
 import online
 import ot_reward
 import policy
 import rundir
 import tables
-import train
 from video_encoder import check_same_encoder, load_encoder
 
 
@@ -76,34 +78,6 @@ PRESETS = {
 
 CHOICES = {"preset": tuple(PRESETS)}
 FINETUNE_FIELDS = ("steps", "starts", "goal_lr", "critic_lr", "finetune_policy", "seeds")  # what GIIL-FT alone reads
-
-
-def setting(agent_body, demo_body, view):
-    return ("SE" if demo_body == agent_body else "CE") + "-" + ("SV" if view == "side" else "CV")
-
-
-def demo_folder(cfgs, demo, view):
-    """<data>/demos/<demo>_<view> of the run's data folder, its episodes collected first (both views of that body and
-    task, the run's preset) where any is missing; an unknown demo lists the valid names."""
-    tc = cfgs["train"]
-    body, _, task = demo.rpartition("_")
-    if body not in envs.BODIES or task not in envs.TASKS:
-        raise ValueError(f"unknown demo {demo!r}: valid demos are {', '.join(b + '_' + t for b in envs.BODIES for t in envs.TASKS)}")
-    os.makedirs(os.path.join(tc.data, "demos"), exist_ok=True)
-    lock = os.open(os.path.join(tc.data, "demos"), os.O_RDONLY)
-    try:  # table shards in parallel: one collects, the others wait on the folder's lock, then find the episodes on disk
-        fcntl.flock(lock, fcntl.LOCK_EX)
-        collect.collect_demos(collect.preset_config(tc.preset), tc.data, os.cpu_count(), tc.encoder, [(body, task)])
-    finally:
-        os.close(lock)
-    return os.path.join(tc.data, "demos", f"{demo}_{view}")
-
-
-def body_segments(cfgs):
-    """D_body as collect.Segments (the run's data folder and segment length): what L_MG keeps training on."""
-    wc, tc = cfgs["wm"], cfgs["train"]
-    keys = (wc.obs, "action", "is_first", "p")
-    return collect.Segments(collect.load_folder(os.path.join(tc.data, tc.env), keys), keys, wc.seq_len)
 
 
 def body_pool(models, cfgs, segments, rng, device, n=32):
@@ -151,22 +125,6 @@ def multi_goal_loss(models, start, goal, body_goals, bc, cfgs):  # Eq. 4 during 
     return a_loss, c_loss, metrics
 
 
-def checked_step(opt, loss, what, seed, update, clip=None):
-    """opt.step() on `loss`, unless the loss or a gradient is not finite or the loss diverged (train.DIVERGED): then a
-    one-line error, and nothing more is appended to results.jsonl."""
-    opt.zero_grad(set_to_none=True)
-    bad = "" if abs(loss.item()) < train.DIVERGED else f"is {loss.item():.3g}"  # False for nan and inf too
-    if not bad:
-        loss.backward()
-        params = [p for group in opt.param_groups for p in group["params"]]
-        if clip:
-            torch.nn.utils.clip_grad_norm_(params, clip)  # as in phase 1
-        bad = "" if all(torch.isfinite(p.grad).all() for p in params if p.grad is not None) else "has a non-finite gradient"
-    if bad:
-        raise ValueError(f"GIIL-FT seed {seed}: {what} {bad} at update {update}: stopped (a learning rate too high? --goal-lr, --critic-lr)")
-    opt.step()
-
-
 def finetune_goal(models, cfgs, ic, ot_cfg, p_goal, demo_p, seed, device, optim_states=None):
     """GIIL-FT: optimise g (and psi by L_MG with --finetune-policy 1) for ic.steps updates from the zero-shot goal
     q(s | p_goal), p_goal (D,) the first demo's last feature. Returns the final g (F,). optim_states: the phase-1
@@ -187,7 +145,8 @@ def finetune_goal(models, cfgs, ic, ot_cfg, p_goal, demo_p, seed, device, optim_
         if optim_states:  # deep copies: Adam steps its state in place, and every seed starts from the checkpoint's
             opt_actor.load_state_dict(copy.deepcopy(optim_states["actor"]))
             opt_critic.load_state_dict(copy.deepcopy(optim_states["critic"]))
-        segments = body_segments(cfgs)
+        segments = checkpoint.body_segments(cfgs)
+    stop = lambda: "nothing more is appended to results.jsonl (a learning rate too high? --goal-lr, --critic-lr)"
     demo_p = torch.as_tensor(np.stack(demo_p), device=device)  # (K, M, D): one collection, every demo of one length
     K, M = demo_p.shape[:2]
     bar = tqdm(range(ic.steps), desc=f"GIIL-FT seed {seed}", leave=False)
@@ -199,7 +158,7 @@ def finetune_goal(models, cfgs, ic, ot_cfg, p_goal, demo_p, seed, device, optim_
         start = {k: start[k] for k in ("deter", "stoch", "mean", "std")}
         gi_loss, ot_loss, metrics = goal_inference_loss(models, critic_ot, slow_ot, goal, start, demo_p, cfgs, ot_cfg, t0 + 1)
         for opt, loss, what in ((opt_goal, gi_loss, "Eq. 5 L_GI"), (opt_ot, ot_loss, "V_ot loss")):
-            checked_step(opt, loss, what, seed, step)
+            checkpoint.checked_step(opt, loss, f"GIIL-FT seed {seed}: {what}", step, stop)
         policy.ema_update(slow_ot, critic_ot, ac.slow_critic_rate)
         if ic.finetune_policy:  # fresh D_body segments every update, as in phase 1: L_MG goes on training on all of D_body
             pool, bc = body_pool(models, cfgs, segments, rng, device, cfgs["wm"].batch)
@@ -207,7 +166,7 @@ def finetune_goal(models, cfgs, ic, ot_cfg, p_goal, demo_p, seed, device, optim_
             body_start = {k: v[index] for k, v in pool.items()}
             a_loss, c_loss, _ = multi_goal_loss(models, body_start, goal, models["world_model"].feat(pool), bc, cfgs)
             for opt, loss, what in ((opt_actor, a_loss, "Eq. 4 actor loss"), (opt_critic, c_loss, "Eq. 4 critic loss")):
-                checked_step(opt, loss, what, seed, step, ac.grad_clip)
+                checkpoint.checked_step(opt, loss, f"GIIL-FT seed {seed}: {what}", step, stop, ac.grad_clip)  # clipped as in phase 1
             policy.ema_update(models["slow_critic"], models["critic"], ac.slow_critic_rate)
         bar.set_postfix(ot=f"{metrics['ot_reward']:.4f}")
     return goal.detach()
@@ -233,15 +192,15 @@ def write_video(path, demo_frames, agent_frames):
 def imitate(run_dir, demo, view, finetune, ic, zero_shot=True, done=None, online_cfg=None):
     """GIIL-ZS (unless not zero_shot), GIIL-FT (with finetune) and GIIL-online (with an online.OnlineConfig, ours after
     Sec. 6) for one demo folder; appends each evaluation
-    to runs/<name>/results.jsonl and returns the rows. done: (method, seed) pairs this cell already has (tables.table),
+    to runs/<name>/results.jsonl and returns the rows. done: (method, seed) pairs this cell already has (table),
     not run again: a cell cut off after some seeds goes on from the first missing one. None: those results.jsonl has
     for these demos and settings, as --table finds them (a rerun after Ctrl-C goes on, appending no duplicates)."""
     rundir.check_flags(ic)
     device = "cuda" if torch.cuda.is_available() else "cpu"
-    cfgs, models, ckpt = train.load_run(run_dir, device)
+    cfgs, models, ckpt = checkpoint.load_run(run_dir, device)
     tc = cfgs["train"]
     rundir.fast_matmul()  # oneDNN where it is faster and still fp32 (rundir.py)
-    folder = demo_folder(cfgs, demo, view)
+    folder = checkpoint.demo_folder(cfgs, demo, view)
     demo_body, task = demo.rsplit("_", 1)
     demos = collect.load_folder(folder, ("pixels", "p"))  # one collection: every demo of one length
     if finetune and len(demos[0]["p"]) < cfgs["ac"].horizon + 2:
@@ -249,7 +208,7 @@ def imitate(run_dir, demo, view, finetune, ic, zero_shot=True, done=None, online
     for d in demos:
         check_same_encoder(ckpt["encoder"], d["encoder"], d["path"])
     demo_returns = [round(d["return"], 3) for d in demos]  # identifies this D_demo: --table ignores rows of older demos
-    where = setting(tc.env, demo_body, view)
+    where = tables.setting(tc.env, demo_body, view)
     ot_cfg = ot_reward.OTConfig(**ot_reward.PRESETS[ic.preset])
     out_dir = os.path.join(run_dir, "imitate")
     os.makedirs(out_dir, exist_ok=True)
@@ -322,6 +281,72 @@ def imitate(run_dir, demo, view, finetune, ic, zero_shot=True, done=None, online
     return rows
 
 
+def baseline_configs(preset, methods):
+    """{method: (module, its config, the config its rows carry)} of the baselines named in `methods` (tables.BASELINES' keys),
+    each with its own preset of that name (cpu's where it has none)."""
+    out = {}
+    for name in methods:
+        module, cls = {"genrl": (genrl, genrl.GenRLConfig), "aime-nob": (aime_nob, aime_nob.AIMENoBConfig)}[name]
+        cfg = cls(**module.PRESETS.get(preset, {}))  # a preset the baseline has not (paper): its defaults
+        out[tables.BASELINES[name]] = (module, cfg, genrl.result_config(cfg))
+    return out
+
+
+def table(run_dir, ic, settings=envs.SETTINGS, demos_per_cell=10, shard=(0, 1), methods=("giil",)):
+    """Tables 1-2 and 4-11 (tables.py): every setting x task for this agent, GIIL-ZS, GIIL-ZS (demo 0) and GIIL-FT
+    ("giil" in `methods`) and the baselines named in `methods` (tables.BASELINES' keys: genrl.py, aime_nob.py, each with
+    its preset of ic.preset); runs only what is missing from results.jsonl, and shows every finished cell of all of them.
+    `settings` limits which settings run now, shard (i, N) runs only the cells i, i + N, i + 2N, ... of those (in
+    tables.cells' order; N processes or machines share one table: rows are appended under a lock, one row per
+    evaluation, and a cell's rows are told apart by method and seed, so shards merge without loss or duplicates); the
+    tables show every finished cell. A row counts only if it was made with the demos now on disk (their returns match)
+    and with the settings asked for (tables.result_config): regenerating D_demo or changing a setting makes the cells
+    run again instead of mixing old and new results."""
+    unknown = [m for m in methods if m not in ("giil", "online") and m not in tables.BASELINES]
+    if unknown:
+        raise ValueError(f"--methods {','.join(unknown)}: choose from giil, online, {', '.join(tables.BASELINES)}")
+    oc = online.OnlineConfig(**online.PRESETS[ic.preset])
+    rundir.check_flags(ic)
+    baselines = baseline_configs(ic.preset, tables.BASELINES)  # their finished cells are shown whichever methods run now
+    cfgs = checkpoint.load_run(run_dir)[0]
+    agent, shown = cfgs["train"].env, []
+    configs = {**{m: tables.result_config(ic, m, oc) for m in tables.METHODS + (tables.ONLINE,)}, **{m: b[2] for m, b in baselines.items()}}
+    # the shards split the cells of `settings`, so that none is left idle; a cell left out runs nothing, its finished rows still count
+    runs_here = [cell for cell in tables.cells(agent) if cell[1] in settings][shard[0]::shard[1]]
+    for task, where in tables.cells(agent):
+        demo, view = tables.demo_of(agent, task, where)
+        run_now = (task, where) in runs_here
+        # one process at a time runs a cell (its lock file, rundir.claim): a second table process without --shard, or
+        # with shards that overlap, skips the cells another one is running; their rows count once written
+        with rundir.claim(tables.cell_lock(run_dir, demo, view)) if run_now else contextlib.nullcontext() as other:
+            if other:
+                print(f"{demo} ({view} view): process {other} is running this cell now ({tables.cell_lock(run_dir, demo, view)}): skipped here")
+            run_now = run_now and not other
+            folder = checkpoint.demo_folder(cfgs, demo, view) if run_now else os.path.join(cfgs["train"].data, "demos", f"{demo}_{view}")
+            if not os.path.isdir(folder):
+                continue
+            returns = [round(e["return"], 3) for e in collect.load_folder(folder, ())]
+            done = {(r["method"], r["seed"]) for r in tables.finished(tables.load_results(run_dir), demo, view, returns, configs)}
+            count = lambda m: sum(method == m for method, _ in done)
+            zs, ft = count("GIIL-ZS") < demos_per_cell, min(count("GIIL-FT"), count("GIIL-ZS (demo 0)")) < ic.seeds
+            # GIIL-online's candidates are GIIL-ZS's goals: its column comes with them (and its curve is read from them)
+            zs, ft = zs and ("giil" in methods or "online" in methods), ft and "giil" in methods
+            on = "online" in methods and min(count(tables.ONLINE), count("GIIL-ZS (demo 0)")) < oc.seeds
+            if (zs or ft or on) and run_now:  # only the seeds missing (a cell cut off goes on where it was)
+                imitate(run_dir, demo, view, ft, ic, zero_shot=zs, done=done, online_cfg=oc if on else None)
+            for name, method in tables.BASELINES.items():
+                module, cfg, _ = baselines[method]
+                if count(method) < cfg.seeds and run_now and name in methods:
+                    module.run_cell(run_dir, demo, view, cfg)
+            shown.append((demo, view, returns))
+    rows = tables.load_results(run_dir)  # read once all cells ran: the rows other shards appended meanwhile count too
+    text = tables.markdown_tables(agent, [r for cell in shown for r in tables.finished(rows, *cell, configs)])
+    path = os.path.join(run_dir, "tables.md")
+    rundir.atomic_write(path, lambda f: f.write(text.encode()))
+    print(text)
+    print(f"wrote {path}")
+
+
 def main():
     parser = argparse.ArgumentParser(description="Phase 2: infer the goal from a demo (GIIL-ZS, --finetune: GIIL-FT), or --table.", allow_abbrev=False)
     parser.add_argument("--demo", help="<demonstrator body>_<task>, e.g. stickman_run")
@@ -354,7 +379,7 @@ def main():
         parser.error(f"--{table_only[0]} works with --table only: add --table, or drop it")
     if args.demo and not args.finetune and any(f in given for f in FINETUNE_FIELDS):
         parser.error(f"--{[f for f in FINETUNE_FIELDS if f in given][0].replace('_', '-')} sets GIIL-FT: add --finetune, or drop it")
-    run = args.run or train.resolve_run(args.env or "walker", ic.preset)
+    run = args.run or checkpoint.resolve_run(args.env or "walker", ic.preset)
     # before anything runs: the run's agent is the body --env names (with --run) and what its folder's name says
     rundir.run_checkpoint(run, env=args.env)
     if args.table:
@@ -367,7 +392,7 @@ def main():
             assert len(shard) == 2 and 0 <= shard[0] < shard[1]
         except (ValueError, AssertionError):
             parser.error(f"--shard {args.shard}: pass I/N with 0 <= I < N, e.g. 0/4")
-        tables.table(run, ic, settings, shard=shard, methods=(args.methods or "giil").split(","))
+        table(run, ic, settings, shard=shard, methods=(args.methods or "giil").split(","))
     elif args.demo:
         view, lock = args.view or "side", tables.cell_lock(run, args.demo, args.view or "side")
         with rundir.claim(lock) as other:  # as a --table cell: one process at a time

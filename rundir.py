@@ -14,7 +14,7 @@ fast_matmul   fp32 matmuls through oneDNN where that is faster and still fp32 (c
 threads_flag  --threads of imitate.py, genrl.py and aime_nob.py: this process's torch threads, not the run's training ones
 export_agent  a trained run as a shipped agent, agents/<body>/checkpoint.pt: weights only (train.py --export)
 atomic_write  every file the project writes, videos too: a temporary file per writer, renamed onto the path (never half a file)
-load_checkpoint, plain, generator, upgrade_checkpoint   checkpoints that load with torch.load(weights_only=True)
+load_checkpoint, plain, generator   checkpoints that load with torch.load(weights_only=True), and only so
 """
 import contextlib
 import dataclasses
@@ -32,6 +32,7 @@ import numpy as np
 import torch
 
 import envs
+from presets import DATA
 
 
 # Ranges of the numeric flags that are not counts or sizes (those are >= 1): (low, high), None = no bound. Learning
@@ -190,13 +191,13 @@ def use_threads(threads):
 AGENTS = "agents"  # the shipped phase-1 agents: agents/<body>/checkpoint.pt, weights only (export_agent)
 
 
-RUN_NAME = re.compile(r"(?P<env>[a-z]+)_(?P<obs>state|pixels)_(?P<preset>[a-z]+)_s(?P<seed>\d+)")  # train.default_run_dir's
+RUN_NAME = re.compile(r"(?P<env>[a-z]+)_(?P<obs>state|pixels)_(?P<preset>[a-z]+)_s(?P<seed>\d+)")  # checkpoint.default_run_dir's
 
 
 def run_checkpoint(run_dir, device="cpu", env=None):
     """The checkpoint of a trained run, checked against what the command expects of it before anything runs: the body
     `env` where the command names one (--env), and what the folder's name says: agents/<body> holds that body's agent,
-    runs/<env>_<obs>_<preset>_s<seed> that run (train.default_run_dir). A folder of another name may hold any agent;
+    runs/<env>_<obs>_<preset>_s<seed> that run (checkpoint.default_run_dir). A folder of another name may hold any agent;
     phase 2 then tags its rows with the checkpoint's body. Errors name the file and the fix."""
     path, folder = os.path.join(run_dir, "checkpoint.pt"), os.path.normpath(run_dir)
     name, shipped = os.path.basename(folder), os.path.basename(os.path.dirname(folder)) == AGENTS
@@ -293,12 +294,14 @@ def atomic_write(path, write, by_name=False):
 
 def load_checkpoint(path, device="cpu"):
     """A checkpoint read with torch.load(weights_only=True): tensors and plain Python values only, so loading a file
-    runs no code from it. One-line ValueError for a corrupt file or one written in the older pickled format."""
+    runs no code from it. One-line ValueError for a corrupt file or one written in the older pickled format, which is
+    never unpickled here: a pickle runs whatever code it holds."""
     try:
         return torch.load(path, map_location=device, weights_only=True)
     except pickle.UnpicklingError:
-        raise ValueError(f"{path} holds pickled Python objects (the format before checkpoints became weights-only): convert it once "
-                         f"with `python train.py --upgrade-checkpoint {path}` (this unpickles it: only for a file you trust)") from None
+        raise ValueError(f"{path} holds pickled Python objects (the format before checkpoints became weights-only), which are not "
+                         f"loaded: train it again, or convert a file you trust with `python train.py --upgrade-checkpoint {path}` "
+                         f"of commit 5fb4022") from None
     except (RuntimeError, EOFError, OSError) as error:
         raise ValueError(f"{path}: not a readable checkpoint ({str(error).splitlines()[0]}); delete it or restore it from a copy") from None
 
@@ -324,22 +327,11 @@ def generator(state):
     return rng
 
 
-def upgrade_checkpoint(path):
-    """Rewrite a checkpoint of the older pickled format (numpy generators and arrays inside) as plain(); its tensors are
-    kept exactly. Unpickles the file: only for a file you trust."""
-    old = torch.load(path, map_location="cpu", weights_only=False)
-    new = plain(old)
-    atomic_write(path, lambda f: torch.save(new, f))
-    return new
-
-
 def export_agent(run_dir, out_dir):
     """A trained run as a shipped agent: its models' float32 weights, config and shapes; no optimiser state or RNG.
-    Loadable by train.load_run like any run (float16 files of earlier exports are cast back to float32 on loading).
+    Loadable by checkpoint.load_run like any run (float16 files of earlier exports are cast back to float32 on loading).
     float32, not float16 (ours): the walker exported in float16 scored 67.7 +- 3.3 on the benchmark against its run's
     72.5 +- 2.7, paired over the same 90 episodes -4.7 +- 2.0 (docs/experiments.md), and float32 fits in 7.5 MB."""
-    import collect  # here, not at the top: collect imports this module
-
     ckpt = load_checkpoint(os.path.join(run_dir, "checkpoint.pt"))
     agent = {k: ckpt[k] for k in ("config", "step", "encoder", "obs_shape", "action_dim", "p_dim")}
     # D_body is not shipped: the agent reads (and collects) demos in its preset's default data folder, wherever it was
@@ -348,7 +340,7 @@ def export_agent(run_dir, out_dir):
     body = os.path.basename(os.path.normpath(out_dir))
     if os.path.basename(os.path.dirname(os.path.normpath(out_dir))) == AGENTS and body in envs.BODIES and body != train_cfg["env"]:
         raise ValueError(f"--export {out_dir}: {run_dir} trained a {train_cfg['env']} agent; export it to agents/{train_cfg['env']}")
-    agent["config"] = {**agent["config"], "train": {**train_cfg, "data": collect.DATA[train_cfg["preset"]]}}
+    agent["config"] = {**agent["config"], "train": {**train_cfg, "data": DATA[train_cfg["preset"]]}}
     agent["trained_data"] = train_cfg["data"]
     agent["models"] = ckpt["models"]
     os.makedirs(out_dir, exist_ok=True)

@@ -1,21 +1,17 @@
 """Tables 1-2 and 4-11 of the paper for one agent: every setting (SE/CE x SV/CV) x task, GIIL-ZS and GIIL-FT, and with
-`--methods` the baselines GenRL and AIME-NoB, ours beside the paper's. `python imitate.py --table [--methods
-giil,genrl,aime-nob]` runs the cells missing from runs/<name>/results.jsonl (imitate.py, genrl.py, aime_nob.py) and
-writes runs/<name>/tables.md.
+`--methods` the baselines GenRL and AIME-NoB, ours beside the paper's. The rows of runs/<name>/results.jsonl, which of
+them count for a cell, and the markdown of runs/<name>/tables.md; `python imitate.py --table [--methods
+giil,genrl,aime-nob]` runs the cells missing (imitate.table) and writes it.
 """
-import contextlib
 import dataclasses
 import json
 import os
 
 import numpy as np
 
-import collect
 import envs
 import evaluate
-import online
 import rundir
-import train
 from envs import SETTINGS
 
 
@@ -38,6 +34,11 @@ PAPER = {
                  "run": [(26.11, 47.62, 80.65, 58.65), (35.17, 14.90, 51.70, 59.25), (26.75, 33.58, 69.71, 69.49), (30.10, 19.51, 37.93, 61.68)],
                  "jump": [(52.16, 87.74, 35.50, 26.07), (38.72, 45.87, 36.37, 37.30), (52.43, 60.14, 36.59, 54.64), (45.14, 59.22, 32.07, 55.73)]},
 }
+
+
+def setting(agent_body, demo_body, view):
+    """The setting of a demo for an agent: SE or CE (same or cross embodiment), SV or CV (same or cross view)."""
+    return ("SE" if demo_body == agent_body else "CE") + "-" + ("SV" if view == "side" else "CV")
 
 
 def demo_of(agent, task, where):
@@ -76,83 +77,13 @@ def finished(rows, demo, view, returns, configs):
 
 
 def cell_lock(run_dir, demo, view):
-    """The lock file of a cell while a process runs it (rundir.claim; tables.table, imitate.py --demo)."""
+    """The lock file of a cell while a process runs it (rundir.claim; imitate.table, imitate.py --demo)."""
     return os.path.join(run_dir, "imitate", f"{demo}_{view}.lock")
 
 
 def cells(agent):
     """Every (task, setting) of an agent's table, in a fixed order (what --shard splits)."""
     return [(task, where) for task in envs.TASKS for where in SETTINGS]
-
-
-def baseline_configs(preset, methods):
-    """{method: (module, its config, the config its rows carry)} of the baselines named in `methods` (BASELINES' keys),
-    each with its own preset of that name (cpu's where it has none)."""
-    import aime_nob
-    import genrl
-
-    out = {}
-    for name in methods:
-        module, cls = {"genrl": (genrl, genrl.GenRLConfig), "aime-nob": (aime_nob, aime_nob.AIMENoBConfig)}[name]
-        cfg = cls(**module.PRESETS.get(preset, {}))  # a preset the baseline has not (paper): its defaults
-        out[BASELINES[name]] = (module, cfg, genrl.result_config(cfg))
-    return out
-
-
-def table(run_dir, ic, settings=SETTINGS, demos_per_cell=10, shard=(0, 1), methods=("giil",)):
-    """Every setting x task for this agent, GIIL-ZS, GIIL-ZS (demo 0) and GIIL-FT ("giil" in `methods`) and the baselines
-    named in `methods` (BASELINES' keys: genrl.py, aime_nob.py, each with its preset of ic.preset); runs only what is
-    missing from results.jsonl, and shows every finished cell of all of them. `settings` limits which settings run now, shard (i, N) runs only the cells i, i + N, i + 2N, ... of
-    those (in `cells`' order; N processes or machines share one table: rows are appended under a lock, one row per evaluation, and a
-    cell's rows are told apart by method and seed, so shards merge without loss or duplicates); the tables show every
-    finished cell. A row counts only if it was made with the demos now on disk (their returns match) and with the
-    settings asked for (result_config): regenerating D_demo or changing a setting makes the cells run again instead
-    of mixing old and new results."""
-    import imitate  # the cells it runs (imitate.py imports this module)
-
-    unknown = [m for m in methods if m not in ("giil", "online") and m not in BASELINES]
-    if unknown:
-        raise ValueError(f"--methods {','.join(unknown)}: choose from giil, online, {', '.join(BASELINES)}")
-    oc = online.OnlineConfig(**online.PRESETS[ic.preset])
-    rundir.check_flags(ic)
-    baselines = baseline_configs(ic.preset, BASELINES)  # their finished cells are shown whichever methods run now
-    cfgs = train.load_run(run_dir)[0]
-    agent, shown = cfgs["train"].env, []
-    configs = {**{m: result_config(ic, m, oc) for m in METHODS + (ONLINE,)}, **{m: b[2] for m, b in baselines.items()}}
-    # the shards split the cells of `settings`, so that none is left idle; a cell left out runs nothing, its finished rows still count
-    runs_here = [cell for cell in cells(agent) if cell[1] in settings][shard[0]::shard[1]]
-    for task, where in cells(agent):
-        demo, view = demo_of(agent, task, where)
-        run_now = (task, where) in runs_here
-        # one process at a time runs a cell (its lock file, rundir.claim): a second table process without --shard, or
-        # with shards that overlap, skips the cells another one is running; their rows count once written
-        with rundir.claim(cell_lock(run_dir, demo, view)) if run_now else contextlib.nullcontext() as other:
-            if other:
-                print(f"{demo} ({view} view): process {other} is running this cell now ({cell_lock(run_dir, demo, view)}): skipped here")
-            run_now = run_now and not other
-            folder = imitate.demo_folder(cfgs, demo, view) if run_now else os.path.join(cfgs["train"].data, "demos", f"{demo}_{view}")
-            if not os.path.isdir(folder):
-                continue
-            returns = [round(e["return"], 3) for e in collect.load_folder(folder, ())]
-            done = {(r["method"], r["seed"]) for r in finished(load_results(run_dir), demo, view, returns, configs)}
-            count = lambda m: sum(method == m for method, _ in done)
-            zs, ft = count("GIIL-ZS") < demos_per_cell, min(count("GIIL-FT"), count("GIIL-ZS (demo 0)")) < ic.seeds
-            # GIIL-online's candidates are GIIL-ZS's goals: its column comes with them (and its curve is read from them)
-            zs, ft = zs and ("giil" in methods or "online" in methods), ft and "giil" in methods
-            on = "online" in methods and min(count(ONLINE), count("GIIL-ZS (demo 0)")) < oc.seeds
-            if (zs or ft or on) and run_now:  # only the seeds missing (a cell cut off goes on where it was)
-                imitate.imitate(run_dir, demo, view, ft, ic, zero_shot=zs, done=done, online_cfg=oc if on else None)
-            for name, method in BASELINES.items():
-                module, cfg, _ = baselines[method]
-                if count(method) < cfg.seeds and run_now and name in methods:
-                    module.run_cell(run_dir, demo, view, cfg)
-            shown.append((demo, view, returns))
-    rows = load_results(run_dir)  # read once all cells ran: the rows other shards appended meanwhile count too
-    text = markdown_tables(agent, [r for cell in shown for r in finished(rows, *cell, configs)])
-    path = os.path.join(run_dir, "tables.md")
-    rundir.atomic_write(path, lambda f: f.write(text.encode()))
-    print(text)
-    print(f"wrote {path}")
 
 
 def markdown_tables(agent, rows):

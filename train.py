@@ -24,56 +24,22 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
+import checkpoint
 import cloning
 import collect
 import distance
 import envs
 import evaluate
-import goal_vae
 import policy
 import rundir
 import world_model
+from checkpoint import COMPONENTS, TrainConfig, default_run_dir, load_run
 from video_encoder import check_same_encoder, load_encoder
 
 
-@dataclasses.dataclass
-class TrainConfig:
-    env: str = "walker"  # the agent's body
-    preset: str = "cpu"  # smoke | cpu | paper: sizes of every component and of D_body
-    seed: int = 0
-    steps: int = 3000  # updates (ours, cpu: ~19 min on one idle core, docs/experiments.md; Dreamer-scale runs use ~1e5 and more)
-    policy_start: int = 1000  # updates of the models before the actor-critic starts (ours)
-    holdout_every: int = 20  # every 20th D_body episode is held out of training, for evaluate.evaluate_imagination
-    eval_episodes: int = 3  # goal-reaching benchmark (evaluate.py): episodes per own-body demo goal
-    eval_steps: int = 500  # agent steps per goal-reaching episode (a whole episode)
-    act_temperature: float = 0.0  # how the benchmark's policy acts, policy.Actor.act: 0 = tanh of the mean; 0.5 raised the stickman's, not its GIIL-ZS (docs/experiments.md)
-    eval_seed: int = 30_000  # the benchmark's first environment seed; another gives fresh start poses, to confirm a choice made on it
-    log_every: int = 100
-    checkpoint_every: int = 250
-    data: str = "data"
-    encoder: str = "default"  # video encoder of the features p_t (video_encoder.py)
-    cover_edges: int = 0  # 1: D_body segments cover an episode's first steps at least as often as its middle (collect.Segments; ours); no gain on 3 stickman seeds (docs/experiments.md)
-    threads: int = 1  # torch CPU threads: these small models ran 6x faster on 1 than on torch's default 2 with the cores shared (measured)
-
-
-TRAIN_PRESETS = {
-    "smoke": dict(steps=6, policy_start=2, holdout_every=3, eval_episodes=1, eval_steps=10, log_every=2, checkpoint_every=3, data=collect.DATA["smoke"]),
-    "cpu": dict(),
-    "paper": dict(steps=100_000, policy_start=5_000, log_every=1000, checkpoint_every=5000),
-}
-# every component's config class, presets and flag prefix ('' = no prefix)
-COMPONENTS = {
-    "train": (TrainConfig, TRAIN_PRESETS, ""),
-    "wm": (world_model.WorldModelConfig, world_model.PRESETS, "wm-"),
-    "goal": (goal_vae.GoalVAEConfig, goal_vae.PRESETS, "goal-"),
-    "dist": (distance.DistanceConfig, distance.PRESETS, "dist-"),
-    "ac": (policy.ActorCriticConfig, policy.PRESETS, "ac-"),
-}
 # fields that may differ when a run is resumed: they do not change what the models are
 RESUMABLE = {"steps", "log_every", "checkpoint_every", "eval_episodes", "eval_steps", "act_temperature", "eval_seed", "data", "threads",
              "bc_polish", "bc_polish_fresh", "bc_polish_batches"}  # the polish starts from the training actor, kept apart in the checkpoint
-DIVERGED = 1e10  # |loss| above this is divergence (ours: the smoke preset's losses are below 100; a learning rate of 1e3 on
-# the goal VAE, distance or critic gave losses of 1e20 and more within 4 updates)
 LR_FLAGS = {"world_model": ("wm", "lr"), "ensemble": ("wm", "lr"), "goal_vae": ("goal", "lr"), "dist_net": ("dist", "lr"), "actor": ("ac", "actor_lr"), "critic": ("ac", "critic_lr")}
 
 
@@ -98,12 +64,6 @@ def resolve_configs(args, preset):
     return out
 
 
-def default_run_dir(env, preset, seed=0, obs=None):
-    """runs/<env>_<obs>_<preset>_s<seed> (obs: the preset's unless given): where train.py writes and imitate.py reads."""
-    obs = obs or world_model.PRESETS[preset].get("obs", world_model.WorldModelConfig.obs)
-    return os.path.join("runs", f"{env}_{obs}_{preset}_s{seed}")
-
-
 def log_line(m):
     """One line per log step, grouped by equation; the actor-critic's part only once it has started."""
     line = (f"{m['step']}: Eq.2 wm {m['wm_loss']:.2f} (recon {m['recon']:.2f} kl {m['kl']:.2f} open-loop {m['open_loop']:.3f}, "
@@ -113,48 +73,6 @@ def log_line(m):
     if "actor_loss" in m:
         line += f" | Eq.4 actor {m['actor_loss']:.3f} critic {m['critic_loss']:.3f} reward {m['reward']:.3f}" + (f" bc {m['bc_loss']:.2f}" if "bc_loss" in m else "")
     return line + f" | {m['updates_per_s']:.1f} upd/s"
-
-
-def build_models(cfgs, obs_shape, action_dim, p_dim, device):
-    wm = world_model.WorldModel(cfgs["wm"], obs_shape, action_dim)
-    if cfgs["dist"].input == "obs" and cfgs["wm"].obs != "state":
-        raise ValueError("--dist-input obs reads decoded state vectors: with --obs pixels pass --dist-input feat")
-    if cfgs["ac"].actor_input == "obs" and cfgs["wm"].obs != "state":
-        raise ValueError("--ac-actor-input obs reads decoded state vectors: with --obs pixels pass --ac-actor-input feat")
-    models = {
-        "world_model": wm,
-        "goal_vae": goal_vae.GoalVAE(cfgs["goal"], p_dim, cfgs["wm"].deter, cfgs["wm"].stoch),
-        "dist_net": distance.DistanceNet(cfgs["dist"], wm.feat_dim, wm.decoder if cfgs["dist"].input == "obs" else None),
-        "actor": policy.Actor(cfgs["ac"], wm.feat_dim, wm.feat_dim, action_dim, wm.decoder),
-        "return_norm": policy.ReturnNorm(cfgs["ac"].return_norm_decay),
-    }
-    models["critic"], models["slow_critic"] = policy.make_critics(cfgs["ac"], wm.feat_dim, wm.feat_dim)
-    if cfgs["ac"].uncertainty:  # only then: runs and agents without it keep their set of models
-        models["ensemble"] = world_model.Disagreement.of(wm)
-    return {k: m.to(device) for k, m in models.items()}
-
-
-def load_run(run_dir, device="cpu", env=None):
-    """A trained run: (configs, models, checkpoint metadata), checked against --env and its folder's name
-    (rundir.run_checkpoint). Errors name the command that makes one."""
-    ckpt = rundir.run_checkpoint(run_dir, device, env)
-    cfgs = {name: COMPONENTS[name][0](**fields) for name, fields in ckpt["config"].items()}
-    models = build_models(cfgs, ckpt["obs_shape"], ckpt["action_dim"], ckpt["p_dim"], device)
-    for name, model in models.items():
-        model.load_state_dict(ckpt["models"][name])
-    return cfgs, models, ckpt
-
-
-def resolve_run(env, preset):
-    """The run phase 2 uses when none is named: the user's own (runs/<env>_<obs>_<preset>_s0) when it exists, else the
-    shipped agent of that body (cpu preset only); says which."""
-    own = default_run_dir(env, preset)
-    shipped = os.path.join(rundir.AGENTS, env)
-    if not os.path.exists(os.path.join(own, "checkpoint.pt")) and preset == "cpu" and os.path.exists(os.path.join(shipped, "checkpoint.pt")):
-        print(f"using the shipped {env} agent {shipped} (no run of your own at {own}; `python train.py --env {env}` makes one)")
-        return shipped
-    print(f"using the run {own}")
-    return own
 
 
 def report_goal_reaching(run_dir, models, cfgs, device):
@@ -271,7 +189,7 @@ def pretrain(cfgs, run_dir, resume):
     torch.manual_seed(tc.seed)
     rng = np.random.default_rng(tc.seed)
     encoder, data, held_out, (obs_shape, action_dim, p_dim) = prepare_data(cfgs)
-    models = build_models(cfgs, obs_shape, action_dim, p_dim, device)
+    models = checkpoint.build_models(cfgs, obs_shape, action_dim, p_dim, device)
     optims, clip = make_optimizers(models, cfgs)
     ckpt_path = os.path.join(run_dir, "checkpoint.pt")
     config = {name: dataclasses.asdict(c) for name, c in cfgs.items()}
@@ -293,20 +211,13 @@ def pretrain(cfgs, run_dir, resume):
         return step
 
     def apply(name, loss, term):
-        """One optimiser step, unless the loss or its gradient is not finite or the loss diverged: then stop, weights untouched."""
-        optims[name].zero_grad(set_to_none=True)
-        bad = "" if abs(loss.item()) < DIVERGED else f"is {loss.item():.3g}"  # False for nan and inf too
-        if not bad:
-            loss.backward()
-            norm = torch.nn.utils.clip_grad_norm_(models[name].parameters(), clip[name])
-            bad = "" if torch.isfinite(norm) else f"has a non-finite gradient (norm {norm.item()})"
-        if bad:
+        """One checked optimiser step (checkpoint.checked_step): a diverged loss stops the run, naming what was kept."""
+        def stop():
             kept = f"the last good checkpoint is {ckpt_path} (update {saved}), untouched" if os.path.exists(ckpt_path) else \
                 f"no checkpoint was written yet (the first comes at update {tc.checkpoint_every})"
             component, field = LR_FLAGS[name]
-            raise ValueError(f"{term} {bad} at update {step}: stopped; {kept}. A learning rate too high? "
-                             f"--{COMPONENTS[component][2]}{field.replace('_', '-')} is {getattr(cfgs[component], field)}")
-        optims[name].step()
+            return f"{kept}. A learning rate too high? --{COMPONENTS[component][2]}{field.replace('_', '-')} is {getattr(cfgs[component], field)}"
+        checkpoint.checked_step(optims[name], loss, term, step, stop, clip[name])
 
     saved, log, t0, metrics = step, open(os.path.join(run_dir, "metrics.jsonl"), "a"), time.time(), {}
     wm, vae, dist_net = models["world_model"], models["goal_vae"], models["dist_net"]
@@ -388,14 +299,8 @@ def main():
     parser.add_argument("--run-dir", default=None, help="default runs/<env>_<obs>_<preset>_s<seed>")
     parser.add_argument("--export", metavar="DIR", help="write the trained run (--run-dir) as a shipped agent DIR/checkpoint.pt "
                         "(weights only, float32), then exit; e.g. agents/walker")
-    parser.add_argument("--upgrade-checkpoint", metavar="PATH", help="rewrite a checkpoint of the older pickled format so that it "
-                        "loads weights-only (unpickles it once: only for a file you trust), then exit")
     add_config_flags(parser)
     args = parser.parse_args()
-    if args.upgrade_checkpoint:
-        rundir.upgrade_checkpoint(args.upgrade_checkpoint)
-        print(f"rewrote {args.upgrade_checkpoint}: it now loads with torch.load(weights_only=True)")
-        return
     envs._check_name("body", getattr(args, "train.env") or TrainConfig.env, envs.BODIES)
     cfgs = resolve_configs(args, getattr(args, "train.preset") or "cpu")
     tc = cfgs["train"]

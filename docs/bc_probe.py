@@ -16,6 +16,7 @@ import numpy as np
 import torch
 
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+import checkpoint  # noqa: E402
 import cloning  # noqa: E402
 import collect  # noqa: E402
 import envs  # noqa: E402
@@ -28,7 +29,7 @@ def what_the_data_allow(cfgs):
     episodes = collect.load_folder(os.path.join(tc.data, tc.env), ("p",))
     p = np.concatenate([e["p"][1:] for e in episodes])
     labels = np.concatenate([[e["task"]] * (len(e["p"]) - 1) for e in episodes])
-    for task in evaluate.BODY_TASKS:
+    for task in envs.BODY_TASKS:
         score = np.mean([envs.normalized_score(task, e["return"]) for e in episodes if e["task"] == task])
         demos = collect.load_folder(os.path.join(tc.data, "demos", f"{tc.env}_{task}_side"), ("p",))
         same = np.mean([np.mean(labels[np.argsort(-(p @ d["p"][-1]))[:200]] == task) for d in demos])
@@ -51,7 +52,7 @@ if __name__ == "__main__":
     args = parser.parse_args()
     torch.set_num_threads(1)
     torch.manual_seed(0)
-    cfgs, models, _ = train.load_run(args.run)
+    cfgs, models, _ = checkpoint.load_run(args.run)
     cfgs["train"] = dataclasses.replace(cfgs["train"], data=args.data or cfgs["train"].data,
                                         seed=cfgs["train"].seed if args.seed is None else args.seed)
     what_the_data_allow(cfgs)

@@ -20,7 +20,9 @@ import numpy as np
 import torch
 
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+import checkpoint  # noqa: E402
 import cloning  # noqa: E402
+import envs  # noqa: E402
 import evaluate  # noqa: E402
 import rundir  # noqa: E402
 import train  # noqa: E402
@@ -49,7 +51,7 @@ if __name__ == "__main__":
     args = parser.parse_args()
     torch.set_num_threads(1)
     rundir.fast_matmul()  # as train.py and its benchmark
-    cfgs, models, _ = train.load_run(args.run)
+    cfgs, models, _ = checkpoint.load_run(args.run)
     cfgs["train"] = dataclasses.replace(cfgs["train"], data=args.data or cfgs["train"].data)
     _, data, _, _ = train.prepare_data(cfgs)
     trained = copy.deepcopy(models["actor"])
@@ -63,6 +65,6 @@ if __name__ == "__main__":
     arms = [("clone 0", actors[0])] + ([(f"{args.clones} clones", Ensemble(actors))] if args.clones > 1 else [])
     for name, actor in arms:
         models["actor"] = actor
-        scores = evaluate.goal_reaching(models, cfgs, 3, 500, tasks=evaluate.BODY_TASKS)
-        means = [np.mean(scores[task]["policy"]) for task in evaluate.BODY_TASKS]
+        scores = evaluate.goal_reaching(models, cfgs, 3, 500, tasks=envs.BODY_TASKS)
+        means = [np.mean(scores[task]["policy"]) for task in envs.BODY_TASKS]
         print(f"seed {args.seed}, {name}, {args.steps} steps each: " + " / ".join(f"{m:.1f}" for m in means) + f", average {np.mean(means):.1f}")

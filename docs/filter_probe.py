@@ -18,10 +18,10 @@ import numpy as np
 import torch
 
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+import checkpoint  # noqa: E402
 import envs  # noqa: E402
 import evaluate  # noqa: E402
 import rundir  # noqa: E402
-import train  # noqa: E402
 
 
 @torch.no_grad()
@@ -64,12 +64,12 @@ if __name__ == "__main__":
     args = parser.parse_args()
     torch.set_num_threads(1)
     rundir.fast_matmul()  # as the benchmark: the plain reading then gives train.py --evaluate's number
-    cfgs, models, _ = train.load_run(args.run)
+    cfgs, models, _ = checkpoint.load_run(args.run)
     tc = dataclasses.replace(cfgs["train"], data=args.data or cfgs["train"].data)
     if cfgs["wm"].obs != "state":
         raise SystemExit("error: the filter probe reads state observations; this run's world model reads pixels")
     scores = []
-    for task in evaluate.BODY_TASKS:
+    for task in envs.BODY_TASKS:
         goals = evaluate.demo_goals(models, tc.env, task, tc.data, tc.eval_episodes)
         env_list = [envs.make_env(tc.env, task) for _ in range(len(goals))]
         if args.window or args.mean:

@@ -26,11 +26,11 @@ import numpy as np
 import torch
 
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+import checkpoint  # noqa: E402
 import collect  # noqa: E402
 import envs  # noqa: E402
 import evaluate  # noqa: E402
 import rundir  # noqa: E402
-import train  # noqa: E402
 
 LAST, UP = 100, 0.8  # "up at the end": mean posture over the last LAST steps >= UP
 
@@ -60,7 +60,7 @@ def agent_row(name, models, cfgs, body, task, p_goals, repeat=1):
 def demo_goals(cfgs, body):
     """{task: (10, D)}: the last video feature of each own-body side-view demo, the benchmark's goals before encoding."""
     folder = lambda task: os.path.join(cfgs["train"].data, "demos", f"{body}_{task}_side")
-    return {task: np.stack([d["p"][-1] for d in collect.load_folder(folder(task), ("p",))]) for task in evaluate.BODY_TASKS}
+    return {task: np.stack([d["p"][-1] for d in collect.load_folder(folder(task), ("p",))]) for task in envs.BODY_TASKS}
 
 
 def decoded_posture(models, body, p_goals):
@@ -73,8 +73,8 @@ def decoded_posture(models, body, p_goals):
 def agent_rows(models, cfgs, body, goals, other_goals=False):
     """As evaluate.goal_reaching: each demo's last feature (goals, demo_goals), the goal of 3 episodes; with
     other_goals, each task also towards the other tasks' demo goals."""
-    for task in evaluate.BODY_TASKS:
-        for goal_task in evaluate.BODY_TASKS if other_goals else (task,):
+    for task in envs.BODY_TASKS:
+        for goal_task in envs.BODY_TASKS if other_goals else (task,):
             name = task if goal_task == task else f"{task}, goals of {goal_task} demos"
             yield agent_row(name, models, cfgs, body, task, goals[goal_task], repeat=3)
 
@@ -88,7 +88,7 @@ def data_episodes(folder, body, task, keys=("state",)):
 
 
 def data_rows(folder, body):
-    for task in evaluate.BODY_TASKS:
+    for task in envs.BODY_TASKS:
         episodes, posture = data_episodes(folder, body, task)
         yield row(task, np.stack(posture, 1), np.array([float(envs.normalized_score(task, e["return"])) for e in episodes]))
 
@@ -120,9 +120,9 @@ def main():
     parser.add_argument("--data", help="the data folder of D_body and the demos (default: the run's)")
     parser.add_argument("--act-temperature", type=float, default=0.0, help="the policy's actions, as train.py's flag (0: the mean)")
     args = parser.parse_args()
-    torch.set_num_threads(train.TrainConfig.threads)  # the benchmark's threads and matmul route (train.py --evaluate):
+    torch.set_num_threads(checkpoint.TrainConfig.threads)  # the benchmark's threads and matmul route (train.py --evaluate):
     rundir.fast_matmul()  # other float sums change a stickman's episodes after a few steps
-    cfgs, models, _ = train.load_run(args.run)
+    cfgs, models, _ = checkpoint.load_run(args.run)
     cfgs["train"].act_temperature = args.act_temperature
     cfgs["train"].data = args.data or cfgs["train"].data
     body = cfgs["train"].env
@@ -137,7 +137,7 @@ def main():
     if args.data_too:
         print(f"\n| {folder} (D_body task episodes) {header}")
         print("\n".join(data_rows(folder, body)))
-        for task in evaluate.BODY_TASKS:
+        for task in envs.BODY_TASKS:
             print("{}: {} episodes up at the end, lowest at step {:.0f}, up again at step {:.0f} (medians)".format(task, *landing(data_episodes(folder, body, task)[1])))
     if args.data_goals:
         print(f"\n| {args.run} (goals from {folder}) {header}")

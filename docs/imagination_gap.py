@@ -22,6 +22,7 @@ import torch
 from tqdm import tqdm
 
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+import checkpoint  # noqa: E402
 import envs  # noqa: E402
 import evaluate  # noqa: E402
 import policy  # noqa: E402
@@ -99,9 +100,9 @@ def task_gap(models, cfgs, task, episodes=1, ensemble=None):
 
 
 def load(run_dir, unpolished=False):
-    """train.load_run's configs and models; with `unpolished`, the actor as training left it, before cloning.polish's
+    """checkpoint.load_run's configs and models; with `unpolished`, the actor as training left it, before cloning.polish's
     cloning steps (the checkpoint keeps it)."""
-    cfgs, models, ckpt = train.load_run(run_dir)
+    cfgs, models, ckpt = checkpoint.load_run(run_dir)
     if unpolished:
         if "actor_unpolished" not in ckpt:
             raise ValueError(f"{run_dir}/checkpoint.pt keeps no unpolished actor: only a run trained with --ac-bc-polish has one (shipped agents do not)")
@@ -121,7 +122,7 @@ def rows(run_dir, episodes=1, unpolished=False, uncertainty=0):
         ensemble = models["ensemble"] if "ensemble" in models else train_ensemble(cfgs, models, uncertainty)
     cell = lambda x: f"{x.mean():.3f} +- {evaluate.stderr(x):.3f}"
     out, every = [], []
-    for task in evaluate.BODY_TASKS:
+    for task in envs.BODY_TASKS:
         every.append(task_gap(models, cfgs, task, episodes, ensemble))
         imagined, real, u = every[-1]
         out.append(f"| {run_dir} | {task} | {cell(imagined)} | {cell(real)} | {cell(imagined - real)} |" + (f" {cell(u)} |" if ensemble is not None else ""))

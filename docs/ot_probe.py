@@ -18,12 +18,12 @@ import numpy as np
 import torch
 
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+import checkpoint  # noqa: E402
 import collect  # noqa: E402
 import envs  # noqa: E402
 import ot_reward  # noqa: E402
 import policy  # noqa: E402
 import tables  # noqa: E402
-import train  # noqa: E402
 
 
 def imagined_ot(models, cfgs, goals, demo_p, starts, seed=0):
@@ -57,7 +57,7 @@ def main():
     parser.add_argument("--settings", default=",".join(envs.SETTINGS))
     args = parser.parse_args()
     torch.set_num_threads(1)
-    cfgs, models, _ = train.load_run(args.run)
+    cfgs, models, _ = checkpoint.load_run(args.run)
     agent, data = cfgs["train"].env, cfgs["train"].data
     zs = {}
     for r in tables.load_results(args.run):

@@ -35,10 +35,10 @@ def train_args(**given):
     import argparse
     import dataclasses
 
-    import train
+    import checkpoint
 
     ns = argparse.Namespace()
-    for name, (cls, _, _) in train.COMPONENTS.items():
+    for name, (cls, _, _) in checkpoint.COMPONENTS.items():
         for field in dataclasses.fields(cls):
             setattr(ns, f"{name}.{field.name}", given.get(field.name) if name == "train" else given.get(f"{name}.{field.name}"))
     return ns

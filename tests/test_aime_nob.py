@@ -12,9 +12,9 @@ import torch
 import torch.nn.functional as F
 
 import aime_nob
+import checkpoint
 import genrl
 import ot_reward
-import train
 
 SMOKE = aime_nob.AIMENoBConfig(**aime_nob.PRESETS["smoke"])
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
@@ -47,7 +47,7 @@ def test_one_seed_interacts_for_its_budget_and_the_world_model_learns(smoke_run)
     demo_p = torch.as_tensor(np.stack([d["p"] for d in cell["demos"]]))
     encoder = aime_nob.load_encoder("default")
     nc = dataclasses.replace(SMOKE, env_steps=30)
-    actor, wm, log = aime_nob.train_seed(cell, nc, genrl.imitate.body_segments(cell["cfgs"]), encoder, demo_p, 0)
+    actor, wm, log = aime_nob.train_seed(cell, nc, checkpoint.body_segments(cell["cfgs"]), encoder, demo_p, 0)
     wm = {k: v.clone() for k, v in wm.state_dict().items()}
     assert [e["episode"] for e in log] == [0, 1, 2]  # 30 agent steps = 3 episodes of 10
     assert log[0]["ot_sum"] == -nc.reward_sum  # ROT's scale: the first episode's labels sum to -10
@@ -55,7 +55,7 @@ def test_one_seed_interacts_for_its_budget_and_the_world_model_learns(smoke_run)
     assert any(not torch.equal(v, start[k]) for k, v in wm.items())  # Eq. 2 went on
     assert all(torch.equal(v, cell["ckpt"]["models"]["world_model"][k]) for k, v in start.items())  # the checkpoint's copy untouched
     # every seed starts again from the phase-1 world model: the same seed run again gives the same world model
-    _, again, _ = aime_nob.train_seed(cell, nc, genrl.imitate.body_segments(cell["cfgs"]), encoder, demo_p, 0)
+    _, again, _ = aime_nob.train_seed(cell, nc, checkpoint.body_segments(cell["cfgs"]), encoder, demo_p, 0)
     assert all(torch.equal(v, wm[k]) for k, v in again.state_dict().items())
 
 

@@ -21,7 +21,7 @@ def data(tmp_path_factory):
 
 def test_body_dataset_is_unlabelled_mix_without_jump(data):
     episodes = collect.load_folder(os.path.join(data, "walker"))
-    assert len(episodes) == SMOKE.explore_episodes + len(collect.BODY_TASKS) * SMOKE.task_episodes
+    assert len(episodes) == SMOKE.explore_episodes + len(envs.BODY_TASKS) * SMOKE.task_episodes
     assert {e["task"] for e in episodes} == {"explore", "stand", "walk", "run"}
     assert not any("jump" in e["source"] for e in episodes)
     e = episodes[-1]
@@ -138,14 +138,14 @@ def test_task_episodes_flag_grows_d_body_and_keeps_what_exists(data, tmp_path):
     out = run(2)
     assert out.returncode == 0, out.stderr[-2000:]
     names = sorted(n for n in os.listdir(folder) if n.endswith(".npz"))
-    assert len(names) == SMOKE.explore_episodes + 2 * len(collect.BODY_TASKS) and "walk_0001.npz" in names
+    assert len(names) == SMOKE.explore_episodes + 2 * len(envs.BODY_TASKS) and "walk_0001.npz" in names
     assert all(os.path.getmtime(os.path.join(folder, n)) == t for n, t in before.items())
     assert json.load(open(os.path.join(folder, collect.COMPLETE)))["task_episodes"] == 2
 
 
 def test_task_episodes_replay_the_chosen_part_of_each_learning_history(tmp_path):
     cfg = collect.CollectConfig(explore_episodes=0, task_episodes=40, history_from=0.5)
-    steps = {task: experts.history_steps("stickman", task) for task in collect.BODY_TASKS}
+    steps = {task: experts.history_steps("stickman", task) for task in envs.BODY_TASKS}
     chosen = {}
     for _, job in collect.episode_jobs("stickman", cfg, str(tmp_path)):
         chosen.setdefault(job["task"], set()).add(job["snapshot"])
@@ -163,7 +163,7 @@ def test_the_cpu_preset_collects_160_task_episodes_per_task_for_both_bodies(tmp_
     for body in ("walker", "stickman"):
         jobs = [job for _, job in collect.episode_jobs(body, cpu, str(tmp_path))]
         assert len(jobs) == 560 and [j["kind"] for j in jobs].count("explore") == 80
-        assert all([j["kind"] for j in jobs].count(task) == 160 for task in collect.BODY_TASKS)
+        assert all([j["kind"] for j in jobs].count(task) == 160 for task in envs.BODY_TASKS)
         assert len({tuple(j["seed"]) for j in jobs}) == 560
     assert collect.preset_config("smoke") == SMOKE
 

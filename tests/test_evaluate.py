@@ -5,6 +5,7 @@ import os
 import numpy as np
 import pytest
 
+import checkpoint
 import evaluate
 from conftest import docs_script
 
@@ -31,9 +32,8 @@ def test_summary_and_across_runs_by_hand(tmp_path):
 def test_run_episodes_sums_each_environment_s_true_reward(smoke_run):
     """Random actions in two envs at once: each return equals the env's reward summed over the same actions."""
     import envs
-    import train
 
-    cfgs, models, _ = train.load_run(smoke_run)
+    cfgs, models, _ = checkpoint.load_run(smoke_run)
     env_list = [envs.make_env("walker", "walk") for _ in range(2)]
     heights = []  # on_step reads the physics after every step
     on_step = lambda env_list: heights.append([env.physics.named.data.xpos["torso", "z"] for env in env_list])
@@ -57,9 +57,8 @@ def test_run_episodes_acts_at_its_temperature(smoke_run):
     import torch
 
     import envs
-    import train
 
-    _, models, ckpt = train.load_run(smoke_run)
+    _, models, ckpt = checkpoint.load_run(smoke_run)
     wm, actor = models["world_model"], models["actor"]
     with torch.no_grad():
         goals = models["goal_vae"].goal(torch.randn(2, ckpt["p_dim"]))
@@ -144,10 +143,9 @@ def test_imagination_gap_is_zero_when_reality_follows_imagination(smoke_run):
     import torch
 
     import envs
-    import train
 
     gap = docs_script("imagination_gap")
-    cfgs, models, ckpt = train.load_run(smoke_run)
+    cfgs, models, ckpt = checkpoint.load_run(smoke_run)
     wm, actor = models["world_model"], models["actor"]
     with torch.no_grad():
         goals = models["goal_vae"].goal(torch.randn(2, ckpt["p_dim"]))
@@ -184,10 +182,9 @@ def test_imagination_gap_scores_the_ensembles_disagreement_on_the_imagined_path(
     import torch
 
     import envs
-    import train
 
     gap = docs_script("imagination_gap")
-    cfgs, models, ckpt = train.load_run(smoke_run)
+    cfgs, models, ckpt = checkpoint.load_run(smoke_run)
     before = {k: v.clone() for k, v in models["world_model"].state_dict().items()}
     ensemble = gap.train_ensemble(cfgs, models, 3)
     assert ensemble.scale > 0 and all(torch.equal(v, before[k]) for k, v in models["world_model"].state_dict().items())
@@ -210,10 +207,9 @@ def test_filter_probe_reproduces_the_benchmark_and_its_window_changes_the_state(
     import torch
 
     import envs
-    import train
 
     probe = docs_script("filter_probe")
-    cfgs, models, ckpt = train.load_run(smoke_run)
+    cfgs, models, ckpt = checkpoint.load_run(smoke_run)
     with torch.no_grad():
         goals = models["goal_vae"].goal(torch.randn(2, ckpt["p_dim"]))
     make = lambda: [envs.make_env("walker", "walk") for _ in range(2)]

@@ -10,8 +10,8 @@ import numpy as np
 import pytest
 import torch
 
+import checkpoint
 import genrl
-import train
 
 SMOKE = genrl.GenRLConfig(**genrl.PRESETS["smoke"])
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
@@ -60,11 +60,11 @@ def test_bad_windows_name_the_flag():
 
 
 def test_world_model_stays_frozen_and_the_actor_learns(smoke_run):
-    cfgs, models, _ = train.load_run(smoke_run)
+    cfgs, models, _ = checkpoint.load_run(smoke_run)
     before = {k: v.clone() for k, v in models["world_model"].state_dict().items()}
     target = genrl.target_states(models, torch.nn.functional.normalize(torch.randn(12, models["goal_vae"].feat_dim), dim=-1), SMOKE.target_len)
     assert target.shape == (SMOKE.target_len, cfgs["wm"].units)  # the state decoder's first layer
-    actor = genrl.train_policy(models, cfgs, SMOKE, target, genrl.imitate.body_segments(cfgs), 0, "cpu")
+    actor = genrl.train_policy(models, cfgs, SMOKE, target, checkpoint.body_segments(cfgs), 0, "cpu")
     torch.manual_seed(0)
     fresh = genrl.policy.Actor(cfgs["ac"], models["world_model"].feat_dim, 1, models["world_model"].action_dim)  # train_policy's initial actor
     assert any(not torch.equal(a, b) for a, b in zip(actor.state_dict().values(), fresh.state_dict().values()))
@@ -72,7 +72,7 @@ def test_world_model_stays_frozen_and_the_actor_learns(smoke_run):
 
 
 def test_target_longer_than_the_demo_is_an_error(smoke_run):
-    _, models, _ = train.load_run(smoke_run)
+    _, models, _ = checkpoint.load_run(smoke_run)
     with pytest.raises(ValueError, match=r"the first demo has 4 features, fewer than --target-len 5"):
         genrl.target_states(models, torch.randn(4, models["goal_vae"].feat_dim), 5)
 

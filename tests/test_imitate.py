@@ -8,9 +8,9 @@ import numpy as np
 import pytest
 import torch
 
+import checkpoint
 import imitate
 import ot_reward
-import train
 from conftest import docs_script
 
 SMOKE = imitate.ImitateConfig(**imitate.PRESETS["smoke"])
@@ -31,12 +31,12 @@ def test_zero_shot_and_finetune_end_to_end(smoke_run):
 
 def test_goal_gets_only_L_GI_and_policy_only_L_MG(smoke_run):
     """Eq. 5 moves g and never psi; Eq. 4 (joint finetuning) moves psi and never g."""
-    cfgs, models, _ = train.load_run(smoke_run)
+    cfgs, models, _ = checkpoint.load_run(smoke_run)
     feat_dim = models["world_model"].feat_dim
     critic_ot, slow_ot = imitate.policy.make_critics(cfgs["ac"], feat_dim, 0)
     goal = torch.nn.Parameter(torch.randn(feat_dim))
     cfgs["ac"].bc = 1.0  # the cpu preset's behaviour-cloning term is part of L_MG too
-    pool, bc = imitate.body_pool(models, cfgs, imitate.body_segments(cfgs), np.random.default_rng(0), "cpu", n=2)
+    pool, bc = imitate.body_pool(models, cfgs, checkpoint.body_segments(cfgs), np.random.default_rng(0), "cpu", n=2)
     start = {k: v[:6] for k, v in pool.items()}
     demo_p = torch.nn.functional.normalize(torch.randn(2, 12, models["goal_vae"].feat_dim), dim=-1)
     gi, ot_loss, _ = imitate.goal_inference_loss(models, critic_ot, slow_ot, goal, start, demo_p, cfgs, ot_reward.OTConfig(iters=5))
@@ -80,7 +80,7 @@ def test_default_run_follows_preset_and_agent(tmp_path):
     for flags, run in (([], "runs/walker_state_smoke_s0"), (["--env", "stickman"], "runs/stickman_state_smoke_s0")):
         out = subprocess.run([sys.executable, script, "--demo", "walker_run", "--preset", "smoke"] + flags, cwd=tmp_path, capture_output=True, text=True)
         assert out.returncode == 1 and out.stderr.startswith(f"error: no checkpoint at {run}/checkpoint.pt"), out.stderr[-2000:]
-    assert train.default_run_dir("walker", "cpu") == os.path.join("runs", "walker_state_cpu_s0")
+    assert checkpoint.default_run_dir("walker", "cpu") == os.path.join("runs", "walker_state_cpu_s0")
 
 
 def test_no_checkpoint_names_the_train_command(tmp_path):
@@ -141,7 +141,7 @@ def test_every_finetuning_seed_starts_from_the_pretrained_policy(smoke_run, tmp_
     monkeypatch.setattr(imitate, "finetune_goal", recording)
     monkeypatch.setattr(imitate.evaluate, "run_episodes", recording_eval)
     imitate.imitate(run, "walker_run", "side", True, dataclasses.replace(SMOKE, finetune_policy=1), zero_shot=False)
-    pretrained = actor_sum(train.load_run(run)[1])
+    pretrained = actor_sum(checkpoint.load_run(run)[1])
     assert len(seen) == SMOKE.seeds and all(s == pytest.approx(pretrained, abs=1e-6) for s in seen)
     zs0 = evaluated[0::2]  # GIIL-ZS (demo 0), GIIL-FT, GIIL-ZS (demo 0), ...
     assert len(zs0) == SMOKE.seeds and all(s == pytest.approx(pretrained, abs=1e-6) for s in zs0)
@@ -150,7 +150,7 @@ def test_every_finetuning_seed_starts_from_the_pretrained_policy(smoke_run, tmp_
 
 def test_finetuning_continues_phase_1_optimisers_without_changing_them(smoke_run):
     """L_MG's Adam starts from the checkpoint's states (deep copies: every seed starts from the same ones)."""
-    cfgs, models, ckpt = train.load_run(smoke_run)
+    cfgs, models, ckpt = checkpoint.load_run(smoke_run)
     states = ckpt["optims"]
     before = [t.clone() for s in states["actor"]["state"].values() for t in s.values()]
     assert before, "the smoke checkpoint must hold Adam moments for the actor"
@@ -164,9 +164,9 @@ def test_finetuning_continues_phase_1_optimisers_without_changing_them(smoke_run
 def test_goal_gradient_flows_through_v_ot_only(smoke_run):
     """Eq. 5 differentiates the values alone: with V_ot constant g gets no gradient (not through the OT rewards), and
     with a V_ot that reads the state it does."""
-    cfgs, models, _ = train.load_run(smoke_run)
+    cfgs, models, _ = checkpoint.load_run(smoke_run)
     feat_dim = models["world_model"].feat_dim
-    pool, _ = imitate.body_pool(models, cfgs, imitate.body_segments(cfgs), np.random.default_rng(0), "cpu", n=2)
+    pool, _ = imitate.body_pool(models, cfgs, checkpoint.body_segments(cfgs), np.random.default_rng(0), "cpu", n=2)
     start = {k: v[:6] for k, v in pool.items()}
     demo_p = torch.nn.functional.normalize(torch.randn(2, 12, models["goal_vae"].feat_dim), dim=-1)
     grads = []
@@ -203,7 +203,7 @@ def test_ot_probe_scores_goals_alike_for_alike_goals(smoke_run):
     import sys
 
     probe = docs_script("ot_probe")
-    cfgs, models, _ = train.load_run(smoke_run)
+    cfgs, models, _ = checkpoint.load_run(smoke_run)
     feat_dim = models["world_model"].feat_dim
     demo_p = torch.nn.functional.normalize(torch.randn(2, 20, models["goal_vae"].feat_dim), dim=-1)
     g = torch.randn(feat_dim)
@@ -233,8 +233,8 @@ def test_parallel_shards_collect_demos_one_at_a_time(tmp_path, monkeypatch):
         active.pop()
 
     monkeypatch.setattr(collect, "collect_demos", slow_collect)
-    cfgs = {"train": train.TrainConfig(data=str(tmp_path))}
-    shards = [threading.Thread(target=imitate.demo_folder, args=(cfgs, "walker_run", "side")) for _ in range(2)]
+    cfgs = {"train": checkpoint.TrainConfig(data=str(tmp_path))}
+    shards = [threading.Thread(target=checkpoint.demo_folder, args=(cfgs, "walker_run", "side")) for _ in range(2)]
     for shard in shards:
         shard.start()
     for shard in shards:

@@ -3,11 +3,11 @@ reads the task reward; end to end through imitate.py (smoke)."""
 import numpy as np
 import torch
 
+import checkpoint
 import envs
 import imitate
 import online
 import tables
-import train
 import video_encoder
 
 SMOKE = imitate.ImitateConfig(**imitate.PRESETS["smoke"])
@@ -48,7 +48,7 @@ class NoRewardEnv:
 
 
 def test_refinement_never_reads_the_task_reward(smoke_run):
-    cfgs, models, _ = train.load_run(smoke_run)
+    cfgs, models, _ = checkpoint.load_run(smoke_run)
     goals = models["goal_vae"].goal(torch.randn(3, models["goal_vae"].feat_dim)).detach()
     demo_p = np.random.default_rng(0).standard_normal((2, 11, models["goal_vae"].feat_dim)).astype(np.float32)
     encoder = video_encoder.load_encoder("default")

@@ -14,11 +14,11 @@ SMOKE = imitate.ImitateConfig(**imitate.PRESETS["smoke"])
 def test_table_keeps_finished_cells(smoke_run, tmp_path):
     run = str(tmp_path / "run")
     shutil.copytree(smoke_run, run)
-    tables.table(run, SMOKE, demos_per_cell=2)
+    imitate.table(run, SMOKE, demos_per_cell=2)
     lines = open(os.path.join(run, "results.jsonl")).read().splitlines()
     text = open(os.path.join(run, "tables.md")).read()
     assert text.count("| SE-SV |") == 5 and "| CE-CV |" in text  # Table 1/2 shape, then one per task
-    tables.table(run, SMOKE, demos_per_cell=2)  # nothing missing: nothing runs again
+    imitate.table(run, SMOKE, demos_per_cell=2)  # nothing missing: nothing runs again
     assert open(os.path.join(run, "results.jsonl")).read().splitlines() == lines
     # cells cut off after their first demo / seed: only the missing evaluations run, each once
     cut = {("walker_walk", "side", "GIIL-ZS", 1), ("stickman_run", "diagonal", "GIIL-FT", 1)}
@@ -26,7 +26,7 @@ def test_table_keeps_finished_cells(smoke_run, tmp_path):
     assert len(kept) == len(lines) - 2
     with open(os.path.join(run, "results.jsonl"), "w") as f:
         f.write("".join(line + "\n" for line in kept))
-    tables.table(run, SMOKE, demos_per_cell=2)
+    imitate.table(run, SMOKE, demos_per_cell=2)
     lines = open(os.path.join(run, "results.jsonl")).read().splitlines()
     assert {tuple(json.loads(line)[k] for k in ("demo", "view", "method", "seed")) for line in lines[len(kept):]} == cut
     assert len(lines) == len(kept) + 2
@@ -37,12 +37,12 @@ def test_table_keeps_finished_cells(smoke_run, tmp_path):
             r["demo_returns"] = [0.0] * len(r["demo_returns"])
     with open(os.path.join(run, "results.jsonl"), "w") as f:
         f.write("".join(json.dumps(r) + "\n" for r in rows))
-    tables.table(run, SMOKE, demos_per_cell=2)
+    imitate.table(run, SMOKE, demos_per_cell=2)
     new = [json.loads(line) for line in open(os.path.join(run, "results.jsonl")).read().splitlines()[len(lines):]]
     assert {(r["demo"], r["view"]) for r in new} == {("walker_stand", "side")} and len(new) == 2 + 2 * SMOKE.seeds
     # other finetuning settings: the GIIL-FT cells run again, no zero-shot cell does; only in the settings asked for
     before = len(open(os.path.join(run, "results.jsonl")).read().splitlines())
-    tables.table(run, dataclasses.replace(SMOKE, goal_lr=1e-4), settings=("CE-CV",), demos_per_cell=2)
+    imitate.table(run, dataclasses.replace(SMOKE, goal_lr=1e-4), settings=("CE-CV",), demos_per_cell=2)
     new = [json.loads(line) for line in open(os.path.join(run, "results.jsonl")).read().splitlines()[before:]]
     assert {(r["method"], r["setting"]) for r in new} == {("GIIL-FT", "CE-CV")} and len(new) == 4 * SMOKE.seeds
     text = open(os.path.join(run, "tables.md")).read()
@@ -71,11 +71,11 @@ def test_shards_together_make_the_whole_table_once(smoke_run, tmp_path, monkeypa
         if (demo, view) == ("stickman_jump", "diagonal") and not others_ran:
             others_ran.append(len({(r["demo"], r["view"]) for r in tables.load_results(run)}))
             for i in (1, 2):
-                tables.table(run, SMOKE, demos_per_cell=2, shard=(i, 3))
+                imitate.table(run, SMOKE, demos_per_cell=2, shard=(i, 3))
         return real(run_dir, demo, view, *args, **kwargs)
 
     monkeypatch.setattr(imitate, "imitate", others_finish_meanwhile)
-    tables.table(run, SMOKE, demos_per_cell=2, shard=(0, 3))
+    imitate.table(run, SMOKE, demos_per_cell=2, shard=(0, 3))
     assert others_ran == [5]  # cells 0, 3, ..., 12 of shard 0 were done when the others ran
     rows = [json.loads(line) for line in open(os.path.join(run, "results.jsonl"))]
     keys = [(r["demo"], r["view"], r["method"], r["seed"]) for r in rows]
@@ -90,7 +90,7 @@ def test_shards_split_the_settings_asked_for(smoke_run, tmp_path, monkeypatch):
     first, second = [], []
     for i, ran in enumerate((first, second)):
         monkeypatch.setattr(imitate, "imitate", lambda run_dir, demo, view, *args, **kwargs: ran.append((demo, view)))
-        tables.table(run, SMOKE, settings=("SE-CV", "CE-CV"), demos_per_cell=2, shard=(i, 2))
+        imitate.table(run, SMOKE, settings=("SE-CV", "CE-CV"), demos_per_cell=2, shard=(i, 2))
     assert len(first) == len(second) == 4 and len(set(first + second)) == 8
     assert {view for _, view in first + second} == {"diagonal"}  # SE-CV and CE-CV are the diagonal view's settings
 
@@ -106,7 +106,7 @@ def test_baselines_join_the_table_as_columns_and_are_not_rerun(smoke_run, tmp_pa
     shutil.copytree(smoke_run, run, ignore=shutil.ignore_patterns("results.jsonl"))
     smoke = dataclasses.replace(SMOKE, preset="smoke")  # the baselines' smoke presets too
     one_cell = dict(demos_per_cell=2, shard=(0, 16))  # cell 0: stand, SE-SV
-    tables.table(run, smoke, methods=("genrl", "aime-nob"), **one_cell)
+    imitate.table(run, smoke, methods=("genrl", "aime-nob"), **one_cell)
     rows = tables.load_results(run)
     seeds = {m: genrl.PRESETS["smoke"]["seeds"] if m == "GenRL" else aime_nob.PRESETS["smoke"]["seeds"] for m in ("GenRL", "AIME-NoB")}
     assert {r["method"] for r in rows} == {"GenRL", "AIME-NoB"} and {(r["task"], r["setting"]) for r in rows} == {("stand", "SE-SV")}
@@ -114,13 +114,13 @@ def test_baselines_join_the_table_as_columns_and_are_not_rerun(smoke_run, tmp_pa
     text = open(os.path.join(run, "tables.md")).read()
     assert "| GenRL (ours) | AIME-NoB (ours) | FT - ZS (demo 0), paired | GIIL-ZS (paper) | GIIL-FT (paper) | GenRL (paper) | AIME-NoB (paper) |" in text
     assert "| SE-SV | - | - | - | " in text and "| - | 42.52 | 68.10 | 86.05 | 84.80 |" in text  # GIIL not run; the paper's walker Table 1
-    tables.table(run, smoke, methods=("genrl", "aime-nob"), **one_cell)
+    imitate.table(run, smoke, methods=("genrl", "aime-nob"), **one_cell)
     assert len(tables.load_results(run)) == len(rows)  # nothing missing: nothing runs again
-    tables.table(run, smoke, methods=("giil",), **one_cell)
+    imitate.table(run, smoke, methods=("giil",), **one_cell)
     assert {r["method"] for r in tables.load_results(run)[len(rows):]} == {"GIIL-ZS", "GIIL-ZS (demo 0)", "GIIL-FT"}
     assert "| GenRL (ours) | AIME-NoB (ours) |" in open(os.path.join(run, "tables.md")).read()  # the baselines' cells stay
     with pytest.raises(ValueError, match="--methods dreamer: choose from giil, online, genrl, aime-nob"):
-        tables.table(run, SMOKE, methods=("giil", "dreamer"))
+        imitate.table(run, SMOKE, methods=("giil", "dreamer"))
 
 
 def test_finetuning_gain_is_paired_by_cell_and_seed():

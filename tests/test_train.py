@@ -8,9 +8,13 @@ import numpy as np
 import pytest
 import torch
 
+import checkpoint
 import cloning
 import collect
+import envs
 import evaluate
+import goal_vae
+import presets
 import rundir
 import train
 from conftest import train_args
@@ -18,7 +22,7 @@ from conftest import train_args
 
 def test_smoke_run_writes_checkpoint_metrics_and_goal_reaching(smoke_run):
     ckpt = torch.load(os.path.join(smoke_run, "checkpoint.pt"), weights_only=True)
-    assert ckpt["step"] == train.TRAIN_PRESETS["smoke"]["steps"] and ckpt["encoder"] == "default-v1"
+    assert ckpt["step"] == checkpoint.TRAIN_PRESETS["smoke"]["steps"] and ckpt["encoder"] == "default-v1"
     assert ckpt["config"]["wm"]["obs"] == "state" and ckpt["config"]["wm"]["deter"] == 16  # the smoke preset, resolved
     lines = [json.loads(l) for l in open(os.path.join(smoke_run, "metrics.jsonl"))]
     assert [l["step"] for l in lines] == [2, 4, 6] and "actor_loss" in lines[-1] and "open_loop" in lines[-1] and -1 <= lines[-1]["open_loop_p_cos"] <= 1
@@ -30,7 +34,7 @@ def test_smoke_run_writes_checkpoint_metrics_and_goal_reaching(smoke_run):
     imagination = json.load(open(os.path.join(smoke_run, "imagination.json")))
     assert set(imagination) == {"posterior_p_cos", "open_loop_p_cos", "open_loop"}
     assert -1 <= imagination["posterior_p_cos"] <= 1 and -1 <= imagination["open_loop_p_cos"] <= 1
-    cfgs, models, _ = train.load_run(smoke_run)
+    cfgs, models, _ = checkpoint.load_run(smoke_run)
     held_out = collect.load_folder(os.path.join(cfgs["train"].data, "walker"), ("state", "action", "is_first", "p"))[:: cfgs["train"].holdout_every]
     first = evaluate.evaluate_imagination(models, cfgs, held_out, "cpu")
     assert evaluate.evaluate_imagination(models, cfgs, held_out, "cpu") == first  # a fixed draw: reruns compare
@@ -63,8 +67,8 @@ def test_nan_loss_stops_and_keeps_last_checkpoint(smoke_run, smoke_data, tmp_pat
     run = str(tmp_path / "run")
     shutil.copytree(smoke_run, run)
     before = open(os.path.join(run, "checkpoint.pt"), "rb").read()
-    original = train.goal_vae.GoalVAE.loss
-    monkeypatch.setattr(train.goal_vae.GoalVAE, "loss", lambda self, p, post: (original(self, p, post)[0] * float("nan"), {}))
+    original = goal_vae.GoalVAE.loss
+    monkeypatch.setattr(goal_vae.GoalVAE, "loss", lambda self, p, post: (original(self, p, post)[0] * float("nan"), {}))
     cfgs = train.resolve_configs(train_args(data=smoke_data, steps=12), "smoke")
     with pytest.raises(ValueError, match=r"Eq. 3 goal-VAE loss is nan at update 6.*checkpoint.pt \(update 6\), untouched"):
         train.train(cfgs, run, resume=True)
@@ -111,7 +115,7 @@ def test_a_smaller_older_d_body_grows_to_the_preset_before_training(smoke_data, 
     cfgs = train.resolve_configs(train_args(data=root), "smoke")
     _, data, held_out, _ = train.prepare_data(cfgs)
     names = [n for n in os.listdir(folder) if n.endswith(".npz")]
-    assert len(names) == len(before) + len(collect.BODY_TASKS) and len(data.lengths) + len(held_out) == len(names)
+    assert len(names) == len(before) + len(envs.BODY_TASKS) and len(data.lengths) + len(held_out) == len(names)
     assert all(os.path.getmtime(os.path.join(folder, n)) == t for n, t in before.items())
     assert json.load(open(os.path.join(folder, collect.COMPLETE)))["task_episodes"] == 2
 
@@ -129,7 +133,7 @@ def test_paper_preset_builds_pixel_dreamer_sizes_and_updates(smoke_data, tmp_pat
 
 def test_missing_checkpoint_names_the_train_command(tmp_path):
     with pytest.raises(FileNotFoundError, match="python train.py --env walker"):
-        train.load_run(str(tmp_path))
+        checkpoint.load_run(str(tmp_path))
 
 
 def test_command_line_runs_and_resumes(smoke_data, tmp_path):
@@ -160,9 +164,9 @@ def test_exported_agent_loads_weights_only_and_acts_like_its_run(smoke_run, tmp_
     agent = torch.load(path, weights_only=True)
     assert "optims" not in agent and "rng" not in agent
     # D_body is not shipped: the agent reads demos from its preset's default folder; where it trained is kept
-    assert agent["config"]["train"]["data"] == collect.DATA["smoke"] and agent["trained_data"] == train.load_run(smoke_run)[0]["train"].data
-    _, run_models, _ = train.load_run(smoke_run)
-    _, agent_models, _ = train.load_run(os.path.dirname(path))
+    assert agent["config"]["train"]["data"] == presets.DATA["smoke"] and agent["trained_data"] == checkpoint.load_run(smoke_run)[0]["train"].data
+    _, run_models, _ = checkpoint.load_run(smoke_run)
+    _, agent_models, _ = checkpoint.load_run(os.path.dirname(path))
     for name, model in run_models.items():
         for (k, a), b in zip(model.state_dict().items(), agent_models[name].state_dict().values()):
             assert b.dtype == a.dtype and torch.equal(a, b), (name, k)
@@ -174,11 +178,11 @@ def test_exported_agent_loads_weights_only_and_acts_like_its_run(smoke_run, tmp_
     assert open(os.path.join(os.path.dirname(path), "previous_0", "results.jsonl")).read() == '{"method": "GIIL-ZS"}\n'
     # phase 2's default: the user's own run when there is one, else the shipped agent, saying which
     monkeypatch.chdir(tmp_path)
-    assert train.resolve_run("walker", "cpu") == os.path.join("agents", "walker")
+    assert checkpoint.resolve_run("walker", "cpu") == os.path.join("agents", "walker")
     assert "using the shipped walker agent agents/walker" in capsys.readouterr().out
-    os.makedirs(train.default_run_dir("walker", "cpu"))
-    shutil.copy(os.path.join(smoke_run, "checkpoint.pt"), train.default_run_dir("walker", "cpu"))
-    assert train.resolve_run("walker", "cpu") == train.default_run_dir("walker", "cpu")
+    os.makedirs(checkpoint.default_run_dir("walker", "cpu"))
+    shutil.copy(os.path.join(smoke_run, "checkpoint.pt"), checkpoint.default_run_dir("walker", "cpu"))
+    assert checkpoint.resolve_run("walker", "cpu") == checkpoint.default_run_dir("walker", "cpu")
 
 
 def test_a_copy_of_an_exported_agent_trains_on_from_its_weights(smoke_run, smoke_data, tmp_path):
@@ -187,7 +191,7 @@ def test_a_copy_of_an_exported_agent_trains_on_from_its_weights(smoke_run, smoke
     run = str(tmp_path / "longer")
     rundir.export_agent(smoke_run, run)
     shipped = torch.load(os.path.join(run, "checkpoint.pt"), weights_only=True)
-    steps = train.TRAIN_PRESETS["smoke"]["steps"]
+    steps = checkpoint.TRAIN_PRESETS["smoke"]["steps"]
     train.train(train.resolve_configs(train_args(data=smoke_data, steps=steps + 2), "smoke"), run, resume=True)
     ckpt = torch.load(os.path.join(run, "checkpoint.pt"), weights_only=True)
     assert ckpt["step"] == steps + 2 and "optims" in ckpt
@@ -222,7 +226,7 @@ def test_a_mixture_actor_trains_with_eq4_and_cloning_and_loads_back(smoke_data, 
     run = train.train(cfgs, str(tmp_path / "mixture"), resume=False)
     last = [json.loads(l) for l in open(os.path.join(run, "metrics.jsonl"))][-1]
     assert np.isfinite(last["actor_loss"]) and np.isfinite(last["bc_loss"]) and np.isfinite(last["entropy"])
-    loaded, models, _ = train.load_run(run)
+    loaded, models, _ = checkpoint.load_run(run)
     actor = models["actor"]
     assert loaded["ac"].mixture == 3 and actor.net[-1].out_features == 3 + 3 * 2 * actor.action_dim
 
@@ -234,11 +238,11 @@ def test_an_actor_on_decoded_observations_trains_and_is_refused_on_pixels(smoke_
     run = train.train(cfgs, str(tmp_path / "obs_actor"), resume=False)
     last = [json.loads(l) for l in open(os.path.join(run, "metrics.jsonl"))][-1]
     assert np.isfinite(last["actor_loss"]) and np.isfinite(last["bc_loss"])
-    loaded, models, _ = train.load_run(run)
+    loaded, models, _ = checkpoint.load_run(run)
     assert loaded["ac"].actor_input == "obs" and models["actor"].net[0].in_features == 2 * models["world_model"].obs_shape[0]
     pixels = train.resolve_configs(train_args(data=smoke_data, **{"wm.obs": "pixels", "dist.input": "feat", "ac.actor_input": "obs"}), "smoke")
     with pytest.raises(ValueError, match="--ac-actor-input obs reads decoded state vectors: with --obs pixels pass --ac-actor-input feat"):
-        train.build_models(pixels, (64, 64, 3), 6, 64, "cpu")
+        checkpoint.build_models(pixels, (64, 64, 3), 6, 64, "cpu")
 
 
 def test_uncertainty_penalty_trains_its_ensemble_and_resumes(smoke_run, smoke_data, tmp_path):
@@ -252,7 +256,7 @@ def test_uncertainty_penalty_trains_its_ensemble_and_resumes(smoke_run, smoke_da
     assert last["uncertainty"] > 0 and last["disagreement_data"] > 0 and ckpt["models"]["ensemble"]["scale"] > 0
     train.train(train.resolve_configs(train_args(data=smoke_data, steps=8, **{"ac.uncertainty": 0.1}), "smoke"), run, resume=True)
     assert torch.load(os.path.join(run, "checkpoint.pt"), weights_only=True)["step"] == 8
-    assert "ensemble" not in train.load_run(smoke_run)[1]
+    assert "ensemble" not in checkpoint.load_run(smoke_run)[1]
 
 
 def test_polish_clones_on_the_final_models_and_leaves_training_untouched(smoke_data, tmp_path):
@@ -278,7 +282,7 @@ def test_polish_clones_on_the_final_models_and_leaves_training_untouched(smoke_d
     assert same(averaged["actor_polish_last"], polished["models"]["actor"]) and not same(averaged["models"]["actor"], polished["models"]["actor"])
     assert not same(averaged["models"]["actor"], averaged["actor_unpolished"]) and "actor_polish_last" not in polished
     # --ac-bc-polish-fresh 1: the polish trains a new actor, whatever the trained one was
-    cfgs, models, _ = train.load_run(str(tmp_path / "plain"))
+    cfgs, models, _ = checkpoint.load_run(str(tmp_path / "plain"))
     cfgs["ac"] = dataclasses.replace(cfgs["ac"], bc_polish=5, bc_polish_fresh=1, bc_polish_batches=2)
     data = train.prepare_data(cfgs)[1]
     cloning.polish(models, cfgs, data, "cpu")
