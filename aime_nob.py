@@ -40,6 +40,7 @@ import genrl
 import ot_reward
 import policy
 import rundir
+from presets import PRESETS
 from video_encoder import check_same_encoder, load_encoder
 from world_model import mlp
 
@@ -48,10 +49,10 @@ METHOD = "AIME-NoB"
 
 @dataclasses.dataclass
 class AIMENoBConfig:
-    preset: str = "cpu"  # smoke | cpu: the overrides in PRESETS, and ot_reward.py's solver preset of the same name
+    preset: str = "cpu"  # smoke | cpu: the overrides in presets.PRESETS["aime_nob"], and the OT solver's preset of the same name
     env_steps: int = 5000  # interaction budget per seed in agent steps: 10 episodes (ours, cpu time; AIME-NoB interacts far longer)
     episode_steps: int = envs.EPISODE_STEPS  # agent steps per collected episode (a whole episode)
-    updates: int = 50  # world-model and actor-critic updates after each episode (ours: a cpu seed in 151-197 s with two processes on 2 cores, rows' time)
+    updates: int = 50  # world-model and actor-critic updates after each episode (ours: a cpu seed in minutes, docs/ablations.md, Baselines' budgets)
     starts: int = 128  # imagination start states per update, posterior states of the batch (as genrl.py)
     body_ratio: float = 0.5  # share of D_body segments in each world-model batch (AIME-NoB: embodiment data at ratio 0.5)
     reward_sum: float = 10.0  # the first episode's OT labels are scaled to sum to -reward_sum (ROT: auto_rew_scale_factor 10)
@@ -65,12 +66,6 @@ class AIMENoBConfig:
             raise ValueError(f"--env-steps {self.env_steps} is not a multiple of --episode-steps {self.episode_steps}: the budget is whole episodes")
         if self.body_ratio == 1:
             raise ValueError("--body-ratio 1: must be below 1, the rest of each batch is the new episodes, which train the reward")
-
-
-PRESETS = {
-    "smoke": dict(env_steps=20, episode_steps=10, updates=2, starts=8, seeds=2, eval_steps=10),
-    "cpu": dict(),
-}
 
 
 def episode_rewards(p, demo_p, ot_cfg):
@@ -133,7 +128,7 @@ def train_seed(cell, nc, body, encoder, demo_p, seed):
               (torch.optim.Adam(actor.parameters(), lr=ac.actor_lr), actor, ac.grad_clip),
               (torch.optim.Adam(critic.parameters(), lr=ac.critic_lr), critic, ac.grad_clip)]
     env = envs.make_env(cfgs["train"].env, cell["task"])
-    ot_cfg = ot_reward.OTConfig(**ot_reward.PRESETS[nc.preset])  # the solver's settings, unit scale: the labels are scaled below
+    ot_cfg = ot_reward.OTConfig(**PRESETS["ot"][nc.preset])  # the solver's settings, unit scale: the labels are scaled below
     goal, episodes, log, scale = genrl.no_goal(1, device), [], [], None
     n_episodes = nc.env_steps // nc.episode_steps
     bar = tqdm(total=n_episodes * nc.updates, desc=f"{METHOD} seed {seed} updates ({n_episodes} episodes)", leave=False)
@@ -196,9 +191,9 @@ def run_cell(run_dir, demo, view, nc, data=None):
 
 def main():
     args = genrl.cell_parser("Baseline AIME-NoB (AIME loss off): online imitation with an OT reward on video features, world model learning on.",
-                             AIMENoBConfig, PRESETS).parse_args()
+                             AIMENoBConfig, PRESETS["aime_nob"]).parse_args()
     rundir.use_threads(args.threads)
-    run_cell(args.run, args.demo, args.view, genrl.config_from_args(AIMENoBConfig, PRESETS, args), args.data)
+    run_cell(args.run, args.demo, args.view, genrl.config_from_args(AIMENoBConfig, PRESETS["aime_nob"], args), args.data)
 
 
 if __name__ == "__main__":

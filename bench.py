@@ -57,14 +57,14 @@ def component_updates(preset="cpu", obs_dim=24, action_dim=6, p_dim=64, device="
     {name: zero-argument function}: forward, backward, gradient clipping and an Adam step, as train.py does them."""
     import torch
 
+    import checkpoint
     import distance
     import goal_vae
     import policy
     import world_model as W
+    from presets import PRESETS
 
-    cfg = {name: cls(**presets[preset]) for name, (cls, presets) in {
-        "wm": (W.WorldModelConfig, W.PRESETS), "goal": (goal_vae.GoalVAEConfig, goal_vae.PRESETS),
-        "dist": (distance.DistanceConfig, distance.PRESETS), "ac": (policy.ActorCriticConfig, policy.PRESETS)}.items()}
+    cfg = {name: checkpoint.COMPONENTS[name][0](**PRESETS[name][preset]) for name in ("wm", "goal", "dist", "ac")}
     obs_shape = obs_dim if cfg["wm"].obs == "state" else (64, 64, 3)
     wm = W.WorldModel(cfg["wm"], obs_shape, action_dim)
     vae = goal_vae.GoalVAE(cfg["goal"], p_dim, cfg["wm"].deter, cfg["wm"].stoch)

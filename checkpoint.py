@@ -22,7 +22,7 @@ import goal_vae
 import policy
 import rundir
 import world_model
-from presets import DATA
+from presets import PRESETS
 
 
 @dataclasses.dataclass
@@ -30,33 +30,28 @@ class TrainConfig:
     env: str = "walker"  # the agent's body
     preset: str = "cpu"  # smoke | cpu | paper: sizes of every component and of D_body
     seed: int = 0
-    steps: int = 3000  # updates (ours, cpu: ~19 min on one idle core, docs/experiments.md; Dreamer-scale runs use ~1e5 and more)
+    steps: int = 3000  # updates (ours: a CPU budget, docs/results.md; Dreamer-scale runs use ~1e5 and more)
     policy_start: int = 1000  # updates of the models before the actor-critic starts (ours)
-    holdout_every: int = 20  # every 20th D_body episode is held out of training, for evaluate.evaluate_imagination
-    eval_episodes: int = 3  # goal-reaching benchmark (evaluate.py): episodes per own-body demo goal
+    holdout_every: int = 20  # every 20th D_body episode is held out of training, for evaluate.evaluate_imagination (ours)
+    eval_episodes: int = 3  # goal-reaching benchmark (evaluate.py, ours): episodes per own-body demo goal
     eval_steps: int = 500  # agent steps per goal-reaching episode (a whole episode)
-    act_temperature: float = 0.0  # how the benchmark's policy acts, policy.Actor.act: 0 = tanh of the mean; 0.5 raised the stickman's, not its GIIL-ZS (docs/experiments.md)
+    act_temperature: float = 0.0  # how the benchmark's policy acts, policy.Actor.act: 0 = tanh of the mean (Dreamer; more: ours, not kept)
     eval_seed: int = 30_000  # the benchmark's first environment seed; another gives fresh start poses, to confirm a choice made on it
     log_every: int = 100
     checkpoint_every: int = 250
-    data: str = "data"
+    data: str = "data"  # the datasets' folder (presets.DATA)
     encoder: str = "default"  # video encoder of the features p_t (video_encoder.py)
-    cover_edges: int = 0  # 1: D_body segments cover an episode's first steps at least as often as its middle (collect.Segments; ours); no gain on 3 stickman seeds (docs/experiments.md)
-    threads: int = 1  # torch CPU threads: these small models ran 6x faster on 1 than on torch's default 2 with the cores shared (measured)
+    cover_edges: int = 0  # 1: D_body segments cover an episode's first steps at least as often as its middle (collect.Segments; ours, not kept)
+    threads: int = 1  # torch CPU threads (ours: these small models ran faster on 1 than on 2 with the cores shared, docs/results.md, Speed)
 
 
-TRAIN_PRESETS = {
-    "smoke": dict(steps=6, policy_start=2, holdout_every=3, eval_episodes=1, eval_steps=10, log_every=2, checkpoint_every=3, data=DATA["smoke"]),
-    "cpu": dict(),
-    "paper": dict(steps=100_000, policy_start=5_000, log_every=1000, checkpoint_every=5000),
-}
-# every component's config class, presets and flag prefix ('' = no prefix)
+# every component's config class and flag prefix ('' = no prefix); their presets are presets.PRESETS[<component>]
 COMPONENTS = {
-    "train": (TrainConfig, TRAIN_PRESETS, ""),
-    "wm": (world_model.WorldModelConfig, world_model.PRESETS, "wm-"),
-    "goal": (goal_vae.GoalVAEConfig, goal_vae.PRESETS, "goal-"),
-    "dist": (distance.DistanceConfig, distance.PRESETS, "dist-"),
-    "ac": (policy.ActorCriticConfig, policy.PRESETS, "ac-"),
+    "train": (TrainConfig, ""),
+    "wm": (world_model.WorldModelConfig, "wm-"),
+    "goal": (goal_vae.GoalVAEConfig, "goal-"),
+    "dist": (distance.DistanceConfig, "dist-"),
+    "ac": (policy.ActorCriticConfig, "ac-"),
 }
 DIVERGED = 1e10  # |loss| above this is divergence (ours: the smoke preset's losses are below 100; a learning rate of 1e3 on
 # the goal VAE, distance or critic gave losses of 1e20 and more within 4 updates)
@@ -95,7 +90,7 @@ def load_run(run_dir, device="cpu", env=None):
 
 def default_run_dir(env, preset, seed=0, obs=None):
     """runs/<env>_<obs>_<preset>_s<seed> (obs: the preset's unless given): where train.py writes and imitate.py reads."""
-    obs = obs or world_model.PRESETS[preset].get("obs", world_model.WorldModelConfig.obs)
+    obs = obs or PRESETS["wm"][preset].get("obs", world_model.WorldModelConfig.obs)
     return os.path.join("runs", f"{env}_{obs}_{preset}_s{seed}")
 
 

@@ -1,7 +1,7 @@
 """Beside Eq. 4 (L_MG), ours: hindsight goal-conditioned behaviour cloning of D_body's actions (GCSL, Ghosh et al. 2021).
 
 Not in the paper: on a CPU budget Eq. 4 alone did not learn to reach goals (README, "Deviations from the paper";
-docs/experiments.md, Phase 1), so the actor's loss also clones D_body's own actions towards hindsight goals:
+docs/ablations.md, Phase 1), so the actor's loss also clones D_body's own actions towards hindsight goals:
   bc_loss            -log pi(a_t | s_t, g), g the goal encoder's state of a later frame of
                      the same segment or of the episode's last frame
   advantage_weights  optional per-action weights exp(beta A) under Eq. 4's critic (AWR; --ac-bc-awr, not kept)
@@ -76,7 +76,7 @@ def weigh(models, ac):
 def polish(models, cfgs, data, device):
     """After the last update, ac.bc_polish steps of hindsight behaviour cloning (bc_loss) of the actor alone on
     the frozen final world model and goal VAE (ours): during training the actor clones from posterior states that the
-    world model still moves, and cloning on the final ones raised goal reaching (docs/experiments.md, Phase 1). With
+    world model still moves, and cloning on the final ones raised goal reaching (docs/ablations.md, Phase 1). With
     ac.bc_polish_fresh the actor is first initialised afresh (models["actor"] is replaced). The posterior states of
     ac.bc_polish_batches D_body batches are computed once and cycled, each step with fresh hindsight goals; a fresh
     Adam at the actor's lr, and RNGs of its own, so that the training's (in the checkpoint) are untouched. With

@@ -6,7 +6,7 @@ D_body (data/<body>/), unlabelled experience of the agent's own body, the paper'
   <task>_NNNN.npz   for task in stand/walk/run: a snapshot drawn uniformly from that expert's learning
                     history (experts/history) acting with Gaussian action noise (the paper replays the
                     buffers of Dreamer agents trained on these tasks). Jump is held out of D_body.
-  Proportion exploration : task episodes = 1 : 3 at the cpu preset (paper: ~2000 : 3 x 1000, 2 : 3).
+  Proportion exploration : task episodes = 1 : 6 at the cpu preset (80 : 3 x 160; paper: ~2000 : 3 x 1000, 2 : 3).
 D_demo (data/demos/<body>_<task>_<view>/NN.npz): the final expert of each (body, task), deterministic;
   each episode is simulated once and rendered from both cameras, so the side and diagonal folders show
   the same motion.
@@ -39,7 +39,7 @@ import envs
 import experts
 import rundir
 from envs import BODY_TASKS
-from presets import DATA
+from presets import DATA, PRESETS
 from video_encoder import check_same_encoder, load_encoder
 
 KEYS = {"state": np.float32, "pixels": np.uint8, "action": np.float32, "reward": np.float32, "is_first": np.bool_, "p": np.float32}
@@ -49,39 +49,26 @@ COMPLETE = "collection.json"  # written into data/<body>/ once all of D_body is 
 
 @dataclass
 class CollectConfig:
-    explore_episodes: int = 80  # D_body exploration episodes (paper ~2000)
-    # D_body episodes per task in envs.BODY_TASKS (paper 1000). 80 : 480 = 1 : 6 (the paper's 2 : 3 is 80 : 120, our first
-    # default): each doubling raised goal reaching, paired over 3 training seeds (docs/experiments.md, Phase 1):
-    # 40 -> 80 per task walker +8.5 +- 5.1, stickman +11.0 +- 1.6; 80 -> 160 stickman +7.2 +- 1.8 (20.1 -> 27.3),
-    # walker +8.0 +- 1.7 (59.6 -> 67.6, against the 80-per-task runs of earlier code)
+    explore_episodes: int = 80  # D_body exploration episodes (ours; the paper: ~2000)
+    # D_body episodes per task in envs.BODY_TASKS (ours: each doubling from 40 raised goal reaching, docs/ablations.md,
+    # Phase 1; the paper: 1000, which makes exploration : task episodes 2 : 3 there, 1 : 6 here)
     task_episodes: int = 160
     demo_episodes: int = 10  # per (body, task, view): paper Sec. 5
     episode_steps: int = envs.EPISODE_STEPS  # agent steps per episode
-    action_noise: float = 0.3  # std of the Gaussian noise on snapshot actions in D_body
-    # task episodes come from the snapshots at or after this fraction of each expert's last history step (0 = the whole
-    # history). The stickman's experts learned late (stand snapshots at 50k / 100k score 16 / 26, from 150k on 65-100;
-    # `python experts.py --eval --history`); the later half alone (0.5) raised its D_body task episodes from 45 to 62 but
-    # not its goal reaching (15.7 +- 1.7 against 20.1 +- 3.3 for the whole history, 3 training seeds each;
-    # docs/experiments.md, Phase 1): the whole history is kept
+    action_noise: float = 0.3  # std of the Gaussian noise on snapshot actions in D_body (ours)
+    # task episodes come from the snapshots at or after this fraction of each expert's last history step (ours; 0 = the whole
+    # history, kept: the later half alone did not raise the stickman's goal reaching, docs/ablations.md, Phase 1)
     history_from: float = 0.0
     # task episodes begin with the task's final expert (the same action noise) until the body is up (envs.posture >= UP
     # for UP_HOLD steps, at most UP_MAX steps), then the snapshot acts: every episode shows a getting up, as the replay of
-    # an agent that learned to get up early would. The stickman's experts learned it late, and its clone gets up about
-    # as often as its data do (docs/experiments.md, "Where the benchmark's points are lost")
+    # an agent that learned to get up early would (ours, a flag: docs/results.md, "Where the points are lost")
     up_first: bool = False
     seed: int = 0
 
 
-PRESETS = {
-    "smoke": dict(explore_episodes=2, task_episodes=1, demo_episodes=2, episode_steps=20),
-    "cpu": dict(),  # the defaults: 560 episodes, ~20 min on 2 idle cores (the walker's: 20 min 21 s)
-    "paper": dict(explore_episodes=2000, task_episodes=1000),
-}
-
-
 def preset_config(preset):
-    """The CollectConfig of a preset, for D_body and D_demo alike."""
-    return CollectConfig(**PRESETS[preset])
+    """The CollectConfig of a preset (presets.py), for D_body and D_demo alike."""
+    return CollectConfig(**PRESETS["collect"][preset])
 
 
 UP, UP_HOLD, UP_MAX = 0.8, 20, 200  # up_first: "up" is posture >= UP held UP_HOLD steps; the final expert acts at most UP_MAX
@@ -363,7 +350,7 @@ def main():
     parser.add_argument("--env", choices=envs.BODIES, help="collect D_body for this body")
     parser.add_argument("--demos", action="store_true", help="collect D_demo: every body x task x view")
     parser.add_argument("--features", action="store_true", help="recompute video features of everything under --data")
-    parser.add_argument("--preset", choices=PRESETS, default="cpu")
+    parser.add_argument("--preset", choices=PRESETS["collect"], default="cpu")
     parser.add_argument("--data", default=None, help="default: data, or data/smoke for --preset smoke (presets.DATA)")
     parser.add_argument("--workers", type=int, default=os.cpu_count())
     parser.add_argument("--encoder", default="default", help="'default' or a TorchScript video model file (video_encoder.py)")

@@ -20,8 +20,8 @@ i.e. a weight of about 0.11.
 
 Which goals d is trained on (ours; the paper trains d on pairs of posterior states only). The policy is given
 goals from the goal encoder, g = q(s | p_j) (GIIL-ZS feeds it q(s | p_T) of a demo), and a d trained on posterior
-pairs alone cannot rank those: on a walker run it gave d = 0.64 / 0.62 / 0.63 / 0.66 for encoder goals 1 / 5 / 15 /
-30 steps ahead (Eq. 6's targets 0.02 / 0.10 / 0.30 / 0.60), so -d was flat and Eq. 4 taught the policy nothing.
+pairs alone cannot rank those: on a walker run it gave about the same d to encoder goals 1, 5, 15 and 30 steps ahead
+(docs/ablations.md, Phase 1), so -d was flat and Eq. 4 taught the policy nothing.
 With `encoder_goals` (default) every pair is scored twice, with the later state as the world model's posterior
 feat_j and as the goal encoder's g_j of the same frame, against the same Eq. 6 target. The posterior's h_t also
 carries the episode's history, which lets d answer "same trajectory?" instead of "how far?"; g_j is read from an
@@ -29,12 +29,12 @@ carries the episode's history, which lets d answer "same trajectory?" instead of
 negatives (not compared with the paper's equal weight here).
 
 What d reads (ours, `input`). Even with encoder goals, d read from the full state [h, z] learnt "same trajectory or
-not" and almost nothing of "how far": on a walker run, d of encoder goals 1 / 5 / 15 / 30 steps ahead stayed at
-0.35-0.40 while another episode's frames gave 0.7-0.9. In imagination, h continues the start state's history, so
+not" and almost nothing of "how far": on a walker run, d of encoder goals 1 to 30 steps ahead stayed about the same,
+well below another episode's frames. In imagination, h continues the start state's history, so
 every near goal looked reached from the first step and -d did not change with what the policy did. LEXA reads an
 embedding of the observation; `input = "obs"` does the same with the world model's own decoder: d reads the decoded
 observation (symlog of the state vector) of s and of g, which holds the body's pose and velocities and no history.
-Measured, it ranked gaps no better than [h, z] (docs/experiments.md, Phase 1). `input = "feat"` is Eq. 7 as written.
+Measured, it ranked gaps no better than [h, z] (docs/ablations.md, Phase 1). `input = "feat"` is Eq. 7 as written.
 """
 from dataclasses import dataclass
 
@@ -49,14 +49,11 @@ class DistanceConfig:
     units: int = 128  # LEXA: 4 x 128 MLP
     layers: int = 4  # LEXA
     pairs: int = 1024  # candidate pairs of each kind (same / different trajectory) per batch (ours)
-    contrastive_weight: float = 1.0  # Eq. 7 weighs both expectations equally (LEXA's 10% negatives ~ 0.11)
+    contrastive_weight: float = 0.1  # weight of Eq. 7's contrastive term (LEXA's 10% negatives ~ 0.11; Eq. 7: 1, equal weights)
     encoder_goals: int = 1  # 1: also fit d(s_i, g_j) with g_j the goal encoder's goal of frame j (ours); 0: Eq. 7 alone
-    input: str = "feat"  # 'feat': d on the latent states [h, z] (Eq. 7); 'obs': on their decoded observations (ours, state obs)
+    input: str = "obs"  # 'obs': d on decoded observations (ours, LEXA's embedding; state obs only); 'feat': on [h, z] (Eq. 7)
     lr: float = 3e-4  # Adam (ours: the usual rate for a small MLP)
     grad_clip: float = 100.0  # global gradient norm, as the world model (Dreamer V1)
-
-
-PRESETS = {"smoke": dict(units=16, layers=2, pairs=64), "cpu": dict(contrastive_weight=0.1, input="obs"), "paper": dict()}
 
 
 class DistanceNet(nn.Module):

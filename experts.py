@@ -73,8 +73,8 @@ def save_actor_member(actor, member, body, task, path, step, score=None):
 def keep_best(actor, body, tasks, step, episodes):
     """The final expert of each task is its best snapshot: member k of `actor` replaces experts/<body>_<task>.pt
     when its mean normalised score over `episodes` deterministic episodes (the seeds of `evaluate`, so the same
-    figure as --eval) beats the saved one's. SAC's return can drop after a peak (stickman stand went from 94
-    to 14); the latest snapshot is not always the best."""
+    figure as --eval) beats the saved one's. SAC's return can drop after a peak (stickman stand's did); the latest
+    snapshot is not always the best."""
     env_list = [envs.make_env(body, task) for task in tasks]
     returns = np.mean([episode_returns(actor, env_list, 1000 + k) for k in range(episodes)], 0)
     for k, task in enumerate(tasks):

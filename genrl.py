@@ -44,6 +44,7 @@ import evaluate
 import policy
 import rundir
 import tables
+from presets import PRESETS
 from video_encoder import check_same_encoder
 
 METHOD = "GenRL"
@@ -51,10 +52,10 @@ METHOD = "GenRL"
 
 @dataclasses.dataclass
 class GenRLConfig:
-    preset: str = "cpu"  # smoke | cpu: the overrides in PRESETS
-    steps: int = 1000  # actor-critic updates per seed: what fits the 5 min per seed and cell set for GenRL here (~3.7 updates/s with two
-    # processes on 2 cores); more updates help (same-body cells: walker SE-SV walk 2.2 +- 2.1 at 400, 52.3 +- 8.4 at 2000); GenRL trains far longer
-    starts: int = 128  # imagination start states per update, D_body posterior states (ours: half phase 1's cpu 256, for time)
+    preset: str = "cpu"  # smoke | cpu: the overrides in presets.PRESETS["genrl"]
+    steps: int = 1000  # actor-critic updates per seed (ours: the time per seed and cell set for GenRL here; more updates help,
+    # docs/ablations.md, Baselines' budgets; GenRL trains far longer)
+    starts: int = 128  # imagination start states per update, D_body posterior states (ours: half the shipped agents' 256, for time)
     target_len: int = 15  # L: target states, q(s | p) of the first demo's last L features (GenRL: as long as the imagination, H = 15 here)
     align_window: int = 8  # k: imagined steps matched to the target's start (GenRL: n_frames 8, the video model's window)
     seeds: int = 3  # Sec. 5: baselines run with 3 seeds
@@ -65,12 +66,6 @@ class GenRLConfig:
         rundir.check_flags(self)
         if self.align_window > self.target_len:
             raise ValueError(f"--align-window {self.align_window} is longer than --target-len {self.target_len}: pass a window <= the target")
-
-
-PRESETS = {
-    "smoke": dict(steps=3, starts=8, target_len=5, align_window=3, seeds=2, eval_steps=10),
-    "cpu": dict(),
-}
 
 
 def decoder_input(world_model, feat):
@@ -260,9 +255,9 @@ def cell_parser(description, cls, presets):
 
 def main():
     args = cell_parser("Baseline GenRL: a task policy in the frozen world model's imagination, rewarded by latent similarity to a demo.",
-                       GenRLConfig, PRESETS).parse_args()
+                       GenRLConfig, PRESETS["genrl"]).parse_args()
     rundir.use_threads(args.threads)
-    run_cell(args.run, args.demo, args.view, config_from_args(GenRLConfig, PRESETS, args), args.data)
+    run_cell(args.run, args.demo, args.view, config_from_args(GenRLConfig, PRESETS["genrl"], args), args.data)
 
 
 if __name__ == "__main__":

@@ -24,16 +24,13 @@ from world_model import gaussian_kl, mlp
 
 @dataclass
 class GoalVAEConfig:
-    units: int = 400  # MLP width, Dreamer V1's MLP size
+    units: int = 256  # MLP width, the world model's (ours; Dreamer V1's MLP size: 400)
     layers: int = 2  # hidden layers of the encoder and of the decoder (ours)
     min_std: float = 0.1  # std = softplus(x) + 0.1, as the world model (Dreamer V1)
     kappa: float = 10.0  # vMF concentration of p(p_t | s) (ours: recon kappa * (1 - cos) on the scale of the z KL)
     posterior_recon: float = 1.0  # weight of the decoder's fit on world-model posterior states (ours, `loss`; 0 = Eq. 3 alone)
     lr: float = 6e-4  # Adam, the world model's rate (Dreamer V1)
     grad_clip: float = 100.0  # global gradient norm, Dreamer V1
-
-
-PRESETS = {"smoke": dict(units=16), "cpu": dict(units=256), "paper": dict(units=1024)}
 
 
 def gaussian_nll(x, mean, std):
@@ -86,8 +83,8 @@ class GoalVAE(nn.Module):
         cos = (self.decode(s_g) * p).sum(-1)  # (B, T)
         recon = self.cfg.kappa * (1 - cos)  # -log vMF(p_t; p_hat, kappa) + const
         # Ours: the decoder also reads sg(posterior) states, the states phase 2 decodes (Eq. 5's imagined rollouts).
-        # Fit on encoder samples alone it read held-out walker posterior states at cos 0.59 to their p_t, 0.84 with
-        # this term (train.py's imagination.json; docs/experiments.md, Ablations).
+        # Fit on encoder samples alone it read held-out posterior states far worse (train.py's imagination.json;
+        # docs/ablations.md, Phase 1).
         post_cos = (self.decode(torch.cat([h, post["stoch"].detach()], -1)) * p).sum(-1)  # (B, T)
         loss = kl.mean() + deter_nll.mean() + recon.mean() + self.cfg.posterior_recon * self.cfg.kappa * (1 - post_cos).mean()
         metrics = {"goal_loss": loss.item(), "goal_kl": kl.mean().item(), "goal_deter_nll": deter_nll.mean().item(),

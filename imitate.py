@@ -11,16 +11,16 @@ GIIL-FT  from the first demo's zero-shot goal, g is optimised by L_GI (Eq. 5): i
          `--finetune-policy 1`, psi is finetuned jointly by L_MG (Eq. 4) with g among its goals (Sec. 4, last
          paragraph): stop-gradients keep g out of L_MG and psi out of L_GI. `seeds` seeds.
 
-Deviation (measured in docs/experiments.md, Phase 2): psi stays frozen by default (joint finetuning did not help over
-the shipped agents' whole SE-SV and SE-CV columns: walker -3.9 +- 2.7, stickman +1.8 +- 3.2, paired over 40 seeds
-each). Two variants of ours were measured equal to Eq. 5 as written on same-body cells and removed: g's gradient
-through the OT rewards of the lambda-returns too, and V_ot alone for the first 100 updates.
+Deviation (measured in docs/ablations.md, Phase 2): psi stays frozen by default (joint finetuning did not help over
+the shipped agents' whole SE-SV and SE-CV columns, paired seed by seed). Two variants of ours were measured equal to
+Eq. 5 as written on same-body cells and removed: g's gradient through the OT rewards of the lambda-returns too, and
+V_ot alone for the first 100 updates.
 
 Choices where the paper is silent:
 * start states of the goal-inference imagination: demo features mapped into the latent space by the goal encoder
   q(s | p_t), Eq. 5's D_demo o q_phi read as embodiment-agnostic start states; the imagined steps are matched against
   the demo frames that follow (ot_reward's windowed matching). Two other choices measured worse and were removed
-  (docs/experiments.md): D_body posterior start states, and optimising a video feature p with g = q(s | p).
+  (docs/ablations.md): D_body posterior start states, and optimising a video feature p with g = q(s | p).
 * a segment against a 500-step demo: whole-demo OT (ot_reward.py) against every demo, the best one counting (ROT).
 
     python imitate.py --demo stickman_run [--view side|diagonal] [--run runs/<name> | --env walker|stickman] [--preset P] [--finetune]
@@ -51,17 +51,18 @@ import ot_reward
 import policy
 import rundir
 import tables
+from presets import PRESETS
 from video_encoder import check_same_encoder, load_encoder
 
 
 @dataclasses.dataclass
 class ImitateConfig:
     preset: str = "cpu"
-    steps: int = 300  # goal-finetuning updates (ours, cpu: ~3 min on 2 cores)
+    steps: int = 300  # goal-finetuning updates (ours, a CPU budget)
     starts: int = 64  # imagined trajectories per L_GI update (ours)
-    goal_lr: float = 3e-4  # Adam on g (ours; chosen on same-body cells: 1e-3 scored lower, docs/experiments.md)
+    goal_lr: float = 3e-4  # Adam on g (ours; chosen on same-body cells, docs/ablations.md)
     critic_lr: float = 8e-5  # V_ot, as the phase-1 critic (Dreamer V1)
-    finetune_policy: int = 0  # 0: the policy stays exactly psi* (ours: joint finetuning did not help on same-body cells, docs/experiments.md); 1: psi jointly finetuned by L_MG (Sec. 4)
+    finetune_policy: int = 0  # 0: the policy stays exactly psi* (ours: joint finetuning did not help on same-body cells, docs/ablations.md); 1: psi jointly finetuned by L_MG (Sec. 4)
     seeds: int = 5  # GIIL-FT seeds (the paper: 3; 5 so that FT vs ZS(demo 0) is measured beyond the noise)
     eval_episodes: int = 3  # episodes per GIIL-ZS goal and per GIIL-FT seed
     eval_steps: int = envs.EPISODE_STEPS
@@ -69,14 +70,7 @@ class ImitateConfig:
     video: int = 1  # write demo | agent side-by-side videos
 
 
-PRESETS = {
-    "smoke": dict(steps=3, starts=8, seeds=2, eval_episodes=1, eval_steps=10),
-    "cpu": dict(),
-    "paper": dict(steps=2000, starts=256),
-}
-
-
-CHOICES = {"preset": tuple(PRESETS)}
+CHOICES = {"preset": tuple(PRESETS["imitate"])}
 FINETUNE_FIELDS = ("steps", "starts", "goal_lr", "critic_lr", "finetune_policy", "seeds")  # what GIIL-FT alone reads
 
 
@@ -209,7 +203,7 @@ def imitate(run_dir, demo, view, finetune, ic, zero_shot=True, done=None, online
         check_same_encoder(ckpt["encoder"], d["encoder"], d["path"])
     demo_returns = [round(d["return"], 3) for d in demos]  # identifies this D_demo: --table ignores rows of older demos
     where = tables.setting(tc.env, demo_body, view)
-    ot_cfg = ot_reward.OTConfig(**ot_reward.PRESETS[ic.preset])
+    ot_cfg = ot_reward.OTConfig(**PRESETS["ot"][ic.preset])
     out_dir = os.path.join(run_dir, "imitate")
     os.makedirs(out_dir, exist_ok=True)
     results_path = os.path.join(run_dir, "results.jsonl")
@@ -257,7 +251,7 @@ def imitate(run_dir, demo, view, finetune, ic, zero_shot=True, done=None, online
             t0 = time.time()  # GIIL-FT's time: finetuning and its evaluation
             goal = finetune_goal(models, cfgs, ic, ot_cfg, torch.as_tensor(demos[0]["p"][-1], device=device), [d["p"] for d in demos], seed, device,
                                  ckpt.get("optims"))
-            # how far finetuning moved g: beside the distance between the demos' zero-shot goals (docs/experiments.md)
+            # how far finetuning moved g: beside the distance between the demos' zero-shot goals (docs/results.md)
             evaluate_goal("GIIL-FT", seed, goal, demos[0]["pixels"], goal_shift=round((goal - goals[0]).norm().item(), 3))
     if online_cfg:  # GIIL-online (online.py): the goal chosen among the demos' zero-shot goals by the OT reward of real rollouts
         encoder, demo_p = load_encoder(tc.encoder), np.stack([d["p"] for d in demos])
@@ -286,8 +280,8 @@ def baseline_configs(preset, methods):
     each with its own preset of that name (cpu's where it has none)."""
     out = {}
     for name in methods:
-        module, cls = {"genrl": (genrl, genrl.GenRLConfig), "aime-nob": (aime_nob, aime_nob.AIMENoBConfig)}[name]
-        cfg = cls(**module.PRESETS.get(preset, {}))  # a preset the baseline has not (paper): its defaults
+        module, cls, key = {"genrl": (genrl, genrl.GenRLConfig, "genrl"), "aime-nob": (aime_nob, aime_nob.AIMENoBConfig, "aime_nob")}[name]
+        cfg = cls(**PRESETS[key].get(preset, {}))  # a preset the baseline has not (paper): its defaults
         out[tables.BASELINES[name]] = (module, cfg, genrl.result_config(cfg))
     return out
 
@@ -369,7 +363,7 @@ def main():
     args = parser.parse_args()
     rundir.use_threads(args.threads)
     given = {f.name: getattr(args, f.name) for f in dataclasses.fields(ImitateConfig) if getattr(args, f.name) is not None}
-    ic = ImitateConfig(**{**PRESETS[given.get("preset", "cpu")], **given})
+    ic = ImitateConfig(**{**PRESETS["imitate"][given.get("preset", "cpu")], **given})
     # a flag that does nothing in the mode chosen is an error, not ignored
     demo_only = [f for f in ("demo", "view", "finetune", "online") if getattr(args, f)]
     table_only = [f for f in ("settings", "shard", "methods") if getattr(args, f) is not None]

@@ -30,10 +30,8 @@ Sinkhorn is solved here, batched over trajectories and demos, in torch: the scal
 of POT's ot.sinkhorn, in float64 (IEEE 754: exp(-C/eps) is 0 in float32 for C > 1.03 at eps 0.01,
 which makes the worst frames earn the best reward, 0). POT is the reference the tests check against:
 ot.sinkhorn(method='sinkhorn_log') iteration for iteration, and ot.emd in the small-eps limit. POT
-in the main path was slower at bench() size (B=256, K=10, M=500, one thread, measured): per-pair
-ot.sinkhorn ~5.5 s (numpy) / ~17 s (torch, log), ot.batch.solve_batch ~7 s (scaling) / ~24 s (log),
-against 2-3 s here (2 cores shared with training runs); the log-domain form of this loop was 6-10x
-slower than the scaling form.
+in the main path (per-pair ot.sinkhorn, ot.batch.solve_batch) was several times slower at bench.py's
+size, and so was the log-domain form of this loop against the scaling form (docs/results.md, Speed).
 """
 import time
 from dataclasses import dataclass
@@ -49,16 +47,13 @@ class OTConfig:
     eps: float = 0.01  # Sinkhorn entropic regularisation, absolute on the cosine cost in [0, 2] (ROT: epsilon 0.01 with POT)
     iters: int = 100  # Sinkhorn iterations, a fixed count without early stop (ROT: niter=100)
     scale: float = 1.0  # reward scale: sum_t r_t = -scale * <P, C> in [-2 scale, 0] (ROT: sinkhorn_rew_scale)
-    cpu_chunk_bytes: int = 2**20  # CPU: trajectories solved together so their float64 kernels fit the L2 cache (4x faster than one batch at bench size, measured); GPU: one batch
+    cpu_chunk_bytes: int = 2**20  # CPU: trajectories solved together so their float64 kernels fit the L2 cache (faster than one batch, `python bench.py --only ot`); GPU: one batch
 
     def __post_init__(self):
         if not self.eps >= EPS_MIN:
             raise ValueError(f"OTConfig.eps={self.eps} is below {EPS_MIN}: exp(-C/eps) underflows float64 for cosine costs near 2")
         if self.iters < 1:
             raise ValueError(f"OTConfig.iters={self.iters}: Sinkhorn needs at least one iteration")
-
-
-PRESETS = {"smoke": dict(iters=20), "cpu": dict(), "paper": dict()}
 
 
 def cosine_cost(x, y):

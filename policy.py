@@ -29,14 +29,14 @@ from world_model import mlp
 
 @dataclass
 class ActorCriticConfig:
-    units: int = 400  # MLP width, Dreamer V1
-    actor_layers: int = 4  # Dreamer V1
-    critic_layers: int = 3  # Dreamer V1
+    units: int = 256  # MLP width (ours, a CPU budget; Dreamer V1: 400)
+    actor_layers: int = 2  # (ours, a CPU budget; Dreamer V1: 4)
+    critic_layers: int = 2  # (ours, a CPU budget; Dreamer V1: 3)
     horizon: int = 15  # imagined steps H, Dreamer V1 (GenRL: 16)
     gamma: float = 0.99  # Dreamer V1
     lambda_: float = 0.95  # TD(lambda), Dreamer V1
-    actor_lr: float = 8e-5  # Adam, Dreamer V1
-    critic_lr: float = 8e-5  # Adam, Dreamer V1
+    actor_lr: float = 3e-4  # Adam (ours; Dreamer V1: 8e-5)
+    critic_lr: float = 3e-4  # Adam (ours; Dreamer V1: 8e-5)
     grad_clip: float = 100.0  # global gradient norm, Dreamer V1
     mean_scale: float = 5.0  # pre-tanh mean = 5 tanh(x / 5), Dreamer V1's tanh-normal
     min_std: float = 0.1  # action std bounds, Dreamer V3
@@ -44,40 +44,25 @@ class ActorCriticConfig:
     entropy: float = 3e-4  # entropy bonus scale, Dreamer V3
     slow_critic_rate: float = 0.02  # EMA rate of the slow critic that computes the targets, Dreamer V3
     return_norm_decay: float = 0.99  # EMA decay of the 5-95 percentile range of returns, Dreamer V3
-    starts: int = 2500  # imagination start states per update: Dreamer V1 starts from all 50x50 posterior states
+    starts: int = 32  # imagination start states per update (ours: an update's time is linear in them; Dreamer V1: all 50x50 states)
     goal_mix: float = 0.5  # share of goals from the goal encoder, the rest D_body posterior states (ours; sample_goals)
     reward: str = "distance"  # r^goal: 'distance' = -d(s, g) (Sec. 4), 'feature' = cosine of the goal decoder's features of s and g (ours)
-    goal_near: float = 0.0  # share of goals from a later frame of the start state's own segment, the rest anywhere in the batch (ours; sample_goals)
-    bc: float = 0.0  # weight of hindsight goal-conditioned behaviour cloning on D_body (ours, cloning.bc_loss; 0 = Eq. 4 alone)
-    bc_final: float = 0.0  # share of bc_loss's goals taken from the episode's last frame instead of a later frame of the segment (ours)
-    bc_steps: int = 1  # actor steps on bc_loss per update: the first with Eq. 4's loss, the rest on bc_loss alone, each with fresh goals (ours)
-    bc_polish: int = 0  # bc_loss steps of the actor alone on the frozen final world model and goal VAE, after the last update (ours; cloning.polish)
-    bc_polish_fresh: int = 0  # 1: those steps train a freshly initialised actor instead of the trained one (ours; cloning.polish)
+    goal_near: float = 0.5  # share of goals from a later frame of the start state's own segment, reachable in the horizon (ours; sample_goals)
+    bc: float = 1.0  # weight of hindsight behaviour cloning beside Eq. 4's actor loss (ours, a deviation, cloning.bc_loss; 0 = Eq. 4 alone)
+    bc_final: float = 0.5  # share of bc_loss's goals from the episode's last frame, what the benchmark and GIIL-ZS give (ours)
+    bc_steps: int = 10  # actor steps on bc_loss per update: the first with Eq. 4's loss, the rest on bc_loss alone, each with fresh goals (ours)
+    bc_polish: int = 5000  # bc_loss steps of the actor alone on the frozen final world model and goal VAE, after the last update (ours; cloning.polish)
+    bc_polish_fresh: int = 0  # 1: those steps train a freshly initialised actor instead of the trained one (ours; cloning.polish; not kept)
     bc_polish_batches: int = 250  # D_body batches whose posterior states the polish computes once and cycles (ours; cloning.polish)
-    bc_polish_ema: float = 0.0  # decay of an exponential moving average of the actor's weights over the polish steps, kept as the actor in place of the last step's (ours; Polyak and Juditsky 1992; 0 = the last step's, kept: 0.999 moved the stickman +1.2 +- 0.6, 3 seeds, docs/experiments.md)
-    uncertainty: float = 0.0  # lambda of the penalty r^goal - lambda u on imagined steps, u the disagreement of an ensemble of next-observation predictors in units of its mean on D_body (ours, world_model.Disagreement; MOPO, Yu et al. 2020; 0 = off)
-    actor_input: str = "feat"  # what pi reads of s and g: 'feat' = [h, z] (Dreamer), 'obs' = the world model's decoded observation of each (ours, Actor; kept 'feat': 'obs' lost 14.4 points in the stickman's cloning probe, docs/experiments.md)
-    mixture: int = 1  # Gaussian components of pi before the tanh (ours, Actor; 1 = Dreamer's tanh-normal, kept: 5 lost 19.5 points in the stickman's cloning probe, docs/experiments.md)
-    bc_awr: float = 0.0  # beta of advantage-weighted cloning: bc_loss weighs each action by exp(beta * its standardised advantage) (ours; 0 = plain cloning, kept: beta 1 lost 9.3 points on the stickman, docs/experiments.md)
+    bc_polish_ema: float = 0.0  # decay of a moving average of the actor's weights over the polish steps, kept as the actor (ours; Polyak and Juditsky 1992; 0 = off, not kept)
+    uncertainty: float = 0.0  # lambda of the penalty r^goal - lambda u, u an ensemble's disagreement (ours, world_model.Disagreement; MOPO, Yu et al. 2020; 0 = off, not kept)
+    actor_input: str = "feat"  # what pi reads of s and g: 'feat' = [h, z] (Dreamer), 'obs' = their decoded observations (ours, Actor; not kept)
+    mixture: int = 1  # Gaussian components of pi before the tanh (ours, Actor; 1 = Dreamer's tanh-normal; more: not kept)
+    bc_awr: float = 0.0  # beta of advantage-weighted cloning (ours, cloning.advantage_weights; 0 = plain cloning; not kept)
 
 
 REWARDS = ("distance", "feature")  # the values of ActorCriticConfig.reward
 ACTOR_INPUTS = ("feat", "obs")  # the values of ActorCriticConfig.actor_input
-
-PRESETS = {
-    "smoke": dict(units=16, actor_layers=2, critic_layers=2, horizon=5, starts=32),
-    # starts (ours): an update costs time linear in them; the actor learns mostly from the cloning, and 32 starts
-    # reached goals as 256 did at 1.6x the updates/s (docs/experiments.md, Phase 1)
-    # bc: on a CPU budget (~2k actor updates) Eq. 4 alone did not learn to reach goals (docs/experiments.md, Ablations)
-    # bc_final: evaluation and GIIL-ZS give the goal of an episode's last frame (docs/experiments.md, Phase 1)
-    # goal_near: goals the policy can reach inside the horizon, so -d(s, g) can change with what it does (sample_goals)
-    # bc_steps: a bc_loss step costs ~1/30 of an Eq. 4 step, and goal reaching kept rising with the number of them
-    # (docs/experiments.md, Phase 1)
-    # bc_polish: the actor learns while the world model's posterior states still move; cloning on the final ones
-    # raised goal reaching (docs/experiments.md, Phase 1)
-    "cpu": dict(units=256, actor_layers=2, critic_layers=2, starts=32, actor_lr=3e-4, critic_lr=3e-4, bc=1.0, bc_final=0.5, goal_near=0.5, bc_steps=10, bc_polish=5000),
-    "paper": dict(units=1024, horizon=16, starts=48 * 48),  # GenRL: horizon 16, all states of a 48x48 batch (Mazzaglia et al. 2024)
-}
 
 
 def goal_share(linear, goal):
@@ -88,8 +73,7 @@ def goal_share(linear, goal):
 
 def feat_share(linear, feat):
     """W_f f of that layer: feat (..., F) -> (..., units). As one 2-D matmul: on a 3-D feat with this weight slice
-    (not contiguous) F.linear falls back to a batched matmul over a copy of the weight per row (measured 30% of the
-    actor-critic update's time)."""
+    (not contiguous) F.linear falls back to a batched matmul over a copy of the weight per row (measured slower)."""
     return F.linear(feat.reshape(-1, feat.shape[-1]), linear.weight[:, : feat.shape[-1]]).reshape(*feat.shape[:-1], -1)
 
 

@@ -153,8 +153,8 @@ def append_jsonl(path, row):
 def fast_matmul():
     """Routes fp32 matmuls (linear layers, the GRU cell, their backward) through oneDNN instead of MKL's sgemm, where
     that still computes in fp32; returns whether it did. On AMD EPYC cores MKL takes a slow path: the actor-critic update
-    ran 1.38x faster through oneDNN, relative error vs float64 ~1e-6 as MKL's (`python bench.py --only components`,
-    docs/experiments.md, Speed). PyTorch's switch for this is the mkldnn fp32_precision 'bf16': on a CPU with
+    ran faster through oneDNN, with MKL's error against float64 (`python bench.py --only components`, docs/results.md,
+    Speed). PyTorch's switch for this is the mkldnn fp32_precision 'bf16': on a CPU with
     native bf16 matmul (AMX) oneDNN really rounds the inputs to bf16 (error ~1e-3), so a probe matmul and its backward
     are checked against float64 here and the switch is undone when their error is above fp32's."""
     matmul = torch.backends.mkldnn.matmul
@@ -177,7 +177,7 @@ def fast_matmul():
 def threads_flag(parser):
     """--threads: torch CPU threads of a phase-2 or baseline process, default 1. Not the phase-1 run's --threads: a run
     trained alone with 2 put 2 threads in each of two table shards on two cores, and libgomp's spinning workers then
-    slowed GIIL-FT from ~9 updates/s to one per 5 s (docs/experiments.md, Speed)."""
+    slowed GIIL-FT many times over (docs/results.md, Speed)."""
     parser.add_argument("--threads", type=int, default=1, help="torch CPU threads (default 1; one per table shard)")
 
 
@@ -231,7 +231,7 @@ def check_gpu(preset, allow_cpu):
     """train.py --preset paper without a GPU: a one-line error naming the time it would take and --allow-cpu."""
     if preset == "paper" and not allow_cpu and not torch.cuda.is_available():
         raise ValueError("--preset paper is sized for a GPU and this machine has none: its 100 000 updates of the paper's pixel models "
-                         "take ~6 h on one (docs/experiments.md) and far longer on CPU cores, after a 5000-episode D_body (~3 h to "
+                         "take ~6 h on one (docs/results.md) and far longer on CPU cores, after a 5000-episode D_body (~3 h to "
                          "collect on 2 cores); pass --preset cpu, or --allow-cpu to run it here anyway")
 
 
@@ -330,8 +330,8 @@ def generator(state):
 def export_agent(run_dir, out_dir):
     """A trained run as a shipped agent: its models' float32 weights, config and shapes; no optimiser state or RNG.
     Loadable by checkpoint.load_run like any run (float16 files of earlier exports are cast back to float32 on loading).
-    float32, not float16 (ours): the walker exported in float16 scored 67.7 +- 3.3 on the benchmark against its run's
-    72.5 +- 2.7, paired over the same 90 episodes -4.7 +- 2.0 (docs/experiments.md), and float32 fits in 7.5 MB."""
+    float32, not float16 (ours): the walker exported in float16 scored lower on the benchmark than its run, paired over
+    the same episodes (docs/ablations.md, Training length and export), and float32 fits in 7.5 MB."""
     ckpt = load_checkpoint(os.path.join(run_dir, "checkpoint.pt"))
     agent = {k: ckpt[k] for k in ("config", "step", "encoder", "obs_shape", "action_dim", "p_dim")}
     # D_body is not shipped: the agent reads (and collects) demos in its preset's default data folder, wherever it was

@@ -142,7 +142,7 @@ def select_tasks(state, keep):
 def copy_member(pairs, tasks, actor, critic, critic_target, log_alpha, optims):
     """Restart experts from others: for each "dst=src", task dst takes task src's networks, temperature
     and Adam moments, and goes on learning with its own reward and replay. Used for stickman stand,
-    whose SAC settled on kneeling upright (score ~15): the walk expert already stands (dm_control's stand
+    whose SAC settled on kneeling upright: the walk expert already stands (dm_control's stand
     reward does not penalise moving), so it is a better start than a fresh network."""
     n = len(tasks)
     with torch.no_grad():

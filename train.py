@@ -34,6 +34,7 @@ import policy
 import rundir
 import world_model
 from checkpoint import COMPONENTS, TrainConfig, default_run_dir, load_run
+from presets import PRESETS
 from video_encoder import check_same_encoder, load_encoder
 
 
@@ -45,21 +46,20 @@ LR_FLAGS = {"world_model": ("wm", "lr"), "ensemble": ("wm", "lr"), "goal_vae": (
 
 def add_config_flags(parser):
     """One flag per field of each component's config (default None: 'not given', so presets apply)."""
-    for name, (cls, presets, prefix) in COMPONENTS.items():
+    for name, (cls, prefix) in COMPONENTS.items():
         for field in dataclasses.fields(cls):
-            choices = {("train", "preset"): tuple(presets), ("ac", "reward"): policy.REWARDS, ("ac", "actor_input"): policy.ACTOR_INPUTS}.get((name, field.name))
+            choices = {("train", "preset"): tuple(PRESETS["train"]), ("ac", "reward"): policy.REWARDS, ("ac", "actor_input"): policy.ACTOR_INPUTS}.get((name, field.name))
             parser.add_argument("--" + prefix + field.name.replace("_", "-"), dest=f"{name}.{field.name}", type=type(field.default),
                                 default=None, choices=choices, metavar=None if choices else type(field.default).__name__.upper(),
                                 help=f"{cls.__name__}.{field.name} (default {field.default!r}, or the preset's)")
 
 
 def resolve_configs(args, preset):
-    """dataclass defaults < the preset's overrides < explicit flags -> {component: config}."""
+    """dataclass defaults (the cpu preset) < the preset's overrides (presets.py) < explicit flags -> {component: config}."""
     out = {}
-    for name in COMPONENTS:
-        cls, presets, _ = COMPONENTS[name]
+    for name, (cls, _) in COMPONENTS.items():
         given = {f.name: getattr(args, f"{name}.{f.name}") for f in dataclasses.fields(cls)}
-        out[name] = cls(**{**presets[preset], **{k: v for k, v in given.items() if v is not None}})
+        out[name] = cls(**{**PRESETS[name][preset], **{k: v for k, v in given.items() if v is not None}})
     out["train"].preset = preset  # the preset these sizes come from, whichever way it was passed
     return out
 
@@ -89,7 +89,7 @@ def report_goal_reaching(run_dir, models, cfgs, device):
 def train(cfgs, run_dir, resume):
     """Phase 1 into run_dir, which no other process writes meanwhile (rundir.lock); flags are checked first."""
     for name, config in cfgs.items():
-        rundir.check_flags(config, COMPONENTS[name][2])
+        rundir.check_flags(config, COMPONENTS[name][1])
     ckpt_path = os.path.join(run_dir, "checkpoint.pt")
     if resume and not os.path.exists(ckpt_path):
         raise ValueError(f"--resume: no checkpoint at {ckpt_path}; drop --resume to start a new run there")
@@ -142,9 +142,14 @@ def make_optimizers(models, cfgs):
     return {name: torch.optim.Adam(models[name].parameters(), lr=lr) for name, lr in lrs.items()}, clip
 
 
-def restore(ckpt_path, config, models, optims, encoder, device):
-    """Load a checkpoint to resume from, after checking that it is the same run -> (update, numpy Generator)."""
-    ckpt = rundir.load_checkpoint(ckpt_path, device)
+def resume_from(ckpt_path, resume, cfgs, models, optims, encoder, device, rng):
+    """Where a run starts: (0, rng) for a new run; with --resume, its checkpoint's weights, optimisers and RNGs after
+    checking that it is the same run -> (update, numpy Generator)."""
+    if not os.path.exists(ckpt_path):
+        return 0, rng
+    if not resume:
+        raise ValueError(f"{ckpt_path} exists: pass --resume to continue that run, or another --seed for a new one")
+    ckpt, config = rundir.load_checkpoint(ckpt_path, device), {n: dataclasses.asdict(c) for n, c in cfgs.items()}
     # a field the checkpoint lacks came after it was written: the run had its dataclass default (new flags default to the old behaviour)
     saved = {n: {**dataclasses.asdict(COMPONENTS[n][0]()), **ckpt["config"][n]} for n in ckpt["config"]}
     changed = [f"{n}.{k}" for n in config for k in config[n] if k not in RESUMABLE and saved[n].get(k) != config[n][k]]
@@ -158,7 +163,7 @@ def restore(ckpt_path, config, models, optims, encoder, device):
     models["actor"].load_state_dict(ckpt.get("actor_unpolished", ckpt["models"]["actor"]))  # training goes on from the unpolished actor
     if "optims" not in ckpt:  # a shipped agent (rundir.export_agent: weights only) copied into run_dir: trained on from its
         # weights (its polished actor) with fresh Adam moments and RNGs seeded from (seed, update) (ours; training longer
-        # than it was shipped, docs/experiments.md)
+        # than it was shipped, docs/ablations.md)
         print(f"resumed {ckpt_path} at update {ckpt['step']} from its weights alone (an exported agent): fresh optimisers")
         torch.manual_seed(config["train"]["seed"] * 1_000_003 + ckpt["step"])
         return ckpt["step"], np.random.default_rng([config["train"]["seed"], ckpt["step"]])
@@ -167,6 +172,37 @@ def restore(ckpt_path, config, models, optims, encoder, device):
     torch.set_rng_state(ckpt["torch_rng"].cpu())  # load_checkpoint maps every tensor to `device`; the CPU generator needs a CPU tensor
     print(f"resumed {ckpt_path} at update {ckpt['step']}")
     return ckpt["step"], rundir.generator(ckpt["rng"])
+
+
+def save(ckpt_path, cfgs, step, rng, encoder, shapes, models, optims, **actors):
+    """runs/<name>/checkpoint.pt: what checkpoint.load_run reads and what --resume needs (optimisers, RNGs); `actors`:
+    actor state_dicts kept beside the models (None: not kept). Returns the update it holds."""
+    state = {"config": {n: dataclasses.asdict(c) for n, c in cfgs.items()}, "step": step, "rng": rng.bit_generator.state,
+             "torch_rng": torch.get_rng_state(), "encoder": encoder.name, "obs_shape": shapes[0], "action_dim": shapes[1], "p_dim": shapes[2],
+             "models": {k: m.state_dict() for k, m in models.items()}, "optims": {k: o.state_dict() for k, o in optims.items()},
+             **{k: v for k, v in actors.items() if v is not None}}
+    rundir.atomic_write(ckpt_path, lambda f: torch.save(state, f))
+    return step
+
+
+def stop_hint(ckpt_path, saved, cfgs, name):
+    """What a diverged update says after 'stopped; ': the checkpoint kept, and the learning rate of the model `name`."""
+    kept = f"the last good checkpoint is {ckpt_path} (update {saved}), untouched" if os.path.exists(ckpt_path) else \
+        f"no checkpoint was written yet (the first comes at update {cfgs['train'].checkpoint_every})"
+    component, field = LR_FLAGS[name]
+    return f"{kept}. A learning rate too high? --{COMPONENTS[component][1]}{field.replace('_', '-')} is {getattr(cfgs[component], field)}"
+
+
+def diagnostics(models, cfgs, data, rng, device, post, post_feat, goal_feat, is_first, step):
+    """What a log row adds to the losses: open-loop imagination (evaluate.open_loop_metrics), d of encoder goals 1, 5, 15
+    and 30 steps ahead (distance.distance_profile), Eq. 4's reward on reachable goals (evaluate.reachable_goal_reward)."""
+    wc, ac, wm = cfgs["wm"], cfgs["ac"], models["world_model"]
+    out = evaluate.open_loop_metrics(wm, models["goal_vae"], data.sample(wc.batch, rng, device), wc.seq_len // 2)
+    if wc.seq_len > 40:
+        out.update(distance.distance_profile(models["dist_net"], post_feat, goal_feat, is_first))
+    if step >= cfgs["train"].policy_start and wc.seq_len > ac.horizon:  # from the fresh actor's row on
+        out.update(evaluate.reachable_goal_reward(wm, models["dist_net"], models["actor"], post, goal_feat, is_first, ac.horizon, seed=step))
+    return out
 
 
 def final_report(run_dir, models, cfgs, held_out, device):
@@ -181,112 +217,76 @@ def final_report(run_dir, models, cfgs, held_out, device):
 
 
 def pretrain(cfgs, run_dir, resume):
-    tc, wc, ac = cfgs["train"], cfgs["wm"], cfgs["ac"]
+    """Phase 1 into run_dir (module docstring): every update Eq. 2, 3 and 7 on one batch of D_body segments, then Eq. 4
+    with the hindsight cloning beside it; the log, checkpoints and, after the last update, the polish and the report."""
+    tc, wc, dc, ac = cfgs["train"], cfgs["wm"], cfgs["dist"], cfgs["ac"]
     device = "cuda" if torch.cuda.is_available() else "cpu"
     torch.set_num_threads(tc.threads)
     rundir.fast_matmul()  # oneDNN where it is faster and still fp32 (rundir.py)
-    # seeding: one block, everything from the run seed
-    torch.manual_seed(tc.seed)
+    torch.manual_seed(tc.seed)  # seeding: one block, everything from the run seed
     rng = np.random.default_rng(tc.seed)
-    encoder, data, held_out, (obs_shape, action_dim, p_dim) = prepare_data(cfgs)
-    models = checkpoint.build_models(cfgs, obs_shape, action_dim, p_dim, device)
-    optims, clip = make_optimizers(models, cfgs)
-    ckpt_path = os.path.join(run_dir, "checkpoint.pt")
-    config = {name: dataclasses.asdict(c) for name, c in cfgs.items()}
-    step = 0
-    if os.path.exists(ckpt_path):
-        if not resume:
-            raise ValueError(f"{ckpt_path} exists: pass --resume to continue that run, or another --seed for a new one")
-        step, rng = restore(ckpt_path, config, models, optims, encoder, device)
-    rundir.trim_jsonl(os.path.join(run_dir, "metrics.jsonl"), step)  # rows a killed run logged after its checkpoint
-
-    def save(**actors):
-        """actors: extra actor state_dicts the checkpoint keeps beside the models (None: not kept): actor_unpolished,
-        and with --ac-bc-polish-ema actor_polish_last, the last polish step's beside the average."""
-        state = {"config": config, "step": step, "rng": rng.bit_generator.state, "torch_rng": torch.get_rng_state(), "encoder": encoder.name,
-                 "obs_shape": obs_shape, "action_dim": action_dim, "p_dim": p_dim,
-                 "models": {k: m.state_dict() for k, m in models.items()}, "optims": {k: o.state_dict() for k, o in optims.items()},
-                 **{k: v for k, v in actors.items() if v is not None}}
-        rundir.atomic_write(ckpt_path, lambda f: torch.save(state, f))
-        return step
-
-    def apply(name, loss, term):
-        """One checked optimiser step (checkpoint.checked_step): a diverged loss stops the run, naming what was kept."""
-        def stop():
-            kept = f"the last good checkpoint is {ckpt_path} (update {saved}), untouched" if os.path.exists(ckpt_path) else \
-                f"no checkpoint was written yet (the first comes at update {tc.checkpoint_every})"
-            component, field = LR_FLAGS[name]
-            return f"{kept}. A learning rate too high? --{COMPONENTS[component][2]}{field.replace('_', '-')} is {getattr(cfgs[component], field)}"
-        checkpoint.checked_step(optims[name], loss, term, step, stop, clip[name])
-
-    saved, log, t0, metrics = step, open(os.path.join(run_dir, "metrics.jsonl"), "a"), time.time(), {}
-    wm, vae, dist_net = models["world_model"], models["goal_vae"], models["dist_net"]
-    bar = tqdm(total=tc.steps, initial=step, desc=f"train {os.path.basename(run_dir)}")
-    weights = cloning.weigh(models, ac)
-    while step < tc.steps:
+    encoder, data, held_out, shapes = prepare_data(cfgs)
+    models = checkpoint.build_models(cfgs, *shapes, device)
+    wm, vae, dist_net, actor, critic, slow_critic = (models[k] for k in ("world_model", "goal_vae", "dist_net", "actor", "critic", "slow_critic"))
+    optims, clips = make_optimizers(models, cfgs)
+    ckpt_path, log_path = os.path.join(run_dir, "checkpoint.pt"), os.path.join(run_dir, "metrics.jsonl")
+    first, rng = resume_from(ckpt_path, resume, cfgs, models, optims, encoder, device, rng)
+    rundir.trim_jsonl(log_path, first)  # rows a killed run logged after its checkpoint
+    keep = lambda done, **actors: save(ckpt_path, cfgs, done, rng, encoder, shapes, models, optims, **actors)
+    update = lambda name, loss, term: checkpoint.checked_step(optims[name], loss, term, step, lambda: stop_hint(ckpt_path, saved, cfgs, name), clips[name])
+    saved, t0, metrics = first, time.time(), {}
+    for step in (bar := tqdm(range(first, tc.steps), initial=first, total=tc.steps, desc=f"train {os.path.basename(run_dir)}")):
         batch = data.sample(wc.batch, rng, device)
-        loss, m, post = wm.loss(batch)  # Eq. 2
-        apply("world_model", loss, "Eq. 2 world-model loss")
-        metrics.update(m)
-        loss, m = vae.loss(batch["p"], post)  # Eq. 3
-        apply("goal_vae", loss, "Eq. 3 goal-VAE loss")
-        metrics.update(m)
+        logged = (step + 1) % tc.log_every == 0 or step + 1 == tc.steps  # the update whose metrics the log row keeps
+        # Eq. 2: the world model (RSSM) on the segments -> posterior states s_t
+        loss, m2, post = wm.loss(batch)
+        update("world_model", loss, "Eq. 2 world-model loss")
+        # Eq. 3: the goal VAE, q(s | p_t) and p(p_t | s), against sg(posterior)
+        loss, m3 = vae.loss(batch["p"], post)
+        update("goal_vae", loss, "Eq. 3 goal-VAE loss")
         post_feat = wm.feat(post).detach()  # (B, T, F)
         if "ensemble" in models:  # world_model.Disagreement, for --ac-uncertainty
-            target = world_model.Disagreement.target(wm, batch[wc.obs])
-            loss, m = models["ensemble"].loss(post_feat, batch["action"], target, batch["is_first"])
-            apply("ensemble", loss, "the ensemble's loss")
+            loss, m = models["ensemble"].loss(post_feat, batch["action"], world_model.Disagreement.target(wm, batch[wc.obs]), batch["is_first"])
+            update("ensemble", loss, "the ensemble's loss")
             metrics.update(m)
-        with torch.no_grad():
-            goal_feat = vae.goal(batch["p"])  # (B, T, F): the goal encoder's g of every frame, what GIIL-ZS feeds the policy
-        pairs = distance.sample_pairs(batch["episode"], batch["is_first"], cfgs["dist"].pairs)
-        loss, m = distance.distance_loss(dist_net, post_feat, pairs, wc.seq_len, cfgs["dist"].contrastive_weight,
-                                         goal_feat if cfgs["dist"].encoder_goals else None)  # Eq. 7
-        apply("dist_net", loss, "Eq. 7 distance loss")
-        metrics.update(m)
-        if step >= tc.policy_start:  # Eq. 4
+        # Eq. 7: the temporal distance on pairs of posterior states, and of states and encoder goals (ours)
+        with torch.no_grad():  # the goal encoder's g of every frame (B, T, F), what GIIL-ZS feeds the policy, and of the last (B, F)
+            goal_feat, final_goal = vae.goal(batch["p"]), vae.goal(batch["p_last"])
+        pairs = distance.sample_pairs(batch["episode"], batch["is_first"], dc.pairs)
+        loss, m7 = distance.distance_loss(dist_net, post_feat, pairs, wc.seq_len, dc.contrastive_weight, goal_feat if dc.encoder_goals else None)
+        update("dist_net", loss, "Eq. 7 distance loss")
+        metrics.update(m2 | m3 | m7)
+        # Eq. 4 after policy_start updates, once d gives a meaningful reward: the actor-critic in imagination, reward -d(s, g)
+        if step >= tc.policy_start:
             start, index = policy.sample_starts(post, ac.starts)
             goals = policy.sample_goals(post_feat, goal_feat, index, batch["is_first"], ac.goal_mix, ac.goal_near)
-            logged = (step + 1) % tc.log_every == 0 or step + 1 == tc.steps  # the update whose metrics the log row keeps
-            a_loss, c_loss, m = policy.policy_losses(wm, dist_net, models["actor"], models["critic"], models["slow_critic"], models["return_norm"],
-                                                     start, goals, ac, vae, other_reading=logged, ensemble=models.get("ensemble"))
-            if ac.bc:
-                with torch.no_grad():
-                    final_goal = vae.goal(batch["p_last"])  # (B, F)
-                clone = lambda: cloning.bc_loss(models["actor"], post_feat, goal_feat, batch["action"], final_goal, ac.bc_final, weights)
-                bc, bc_metrics = clone()
-                if logged:  # Eq. 4's share of the actor's step against the cloning's (docs/experiments.md)
-                    m.update(policy.gradient_norms(models["actor"], eq4=a_loss, bc=ac.bc * bc))
-                a_loss = a_loss + ac.bc * bc
-                m.update(bc_metrics)
-            apply("actor", a_loss, "Eq. 4 actor loss")
-            apply("critic", c_loss, "Eq. 4 critic loss")
-            policy.ema_update(models["slow_critic"], models["critic"], ac.slow_critic_rate)
+            a_loss, c_loss, m4 = policy.policy_losses(wm, dist_net, actor, critic, slow_critic, models["return_norm"], start, goals, ac, vae,
+                                                      other_reading=logged, ensemble=models.get("ensemble"))
+            # ours, beside Eq. 4: hindsight behaviour cloning of D_body's actions (cloning.py), in ac.bc_steps actor steps
+            clone = lambda: cloning.bc_loss(actor, post_feat, goal_feat, batch["action"], final_goal, ac.bc_final, cloning.weigh(models, ac))
+            bc, m_bc = clone() if ac.bc else (0.0, {})
+            if logged and ac.bc:  # Eq. 4's share of the actor's step against the cloning's (evaluate.gradient_share)
+                m4.update(policy.gradient_norms(actor, eq4=a_loss, bc=ac.bc * bc))
+            update("actor", a_loss + ac.bc * bc, "Eq. 4 actor loss")
+            update("critic", c_loss, "Eq. 4 critic loss")
+            policy.ema_update(slow_critic, critic, ac.slow_critic_rate)
             for _ in range(ac.bc_steps - 1 if ac.bc else 0):  # more cloning steps on this batch, each with fresh goals
-                bc, bc_metrics = clone()
-                apply("actor", ac.bc * bc, "behaviour-cloning loss")
-                m.update(bc_metrics)
-            metrics.update(m)
-        step += 1
-        bar.update(1)
-        if step % tc.log_every == 0 or step == tc.steps:
-            metrics.update(step=step, updates_per_s=tc.log_every / (time.time() - t0), **evaluate.open_loop_metrics(wm, vae, data.sample(wc.batch, rng, device), wc.seq_len // 2))
-            if wc.seq_len > 40:  # d at 1 / 5 / 15 / 30 steps ahead and for another segment (distance.distance_profile)
-                metrics.update(distance.distance_profile(dist_net, post_feat, goal_feat, batch["is_first"]))
-            if step >= tc.policy_start and wc.seq_len > ac.horizon:  # from the fresh actor's row on
-                metrics.update(evaluate.reachable_goal_reward(wm, dist_net, models["actor"], post, goal_feat, batch["is_first"], ac.horizon, seed=step))
-            t0 = time.time()
-            log.write(json.dumps(metrics) + "\n")
-            log.flush()
+                bc, m_bc = clone()
+                update("actor", ac.bc * bc, "behaviour-cloning loss")
+            metrics.update(m4 | m_bc)
+        if logged:
+            metrics.update(step=step + 1, updates_per_s=tc.log_every / (time.time() - t0))
+            metrics.update(diagnostics(models, cfgs, data, rng, device, post, post_feat, goal_feat, batch["is_first"], step + 1))
+            rundir.append_jsonl(log_path, metrics)
             bar.write(log_line(metrics))
-        if step % tc.checkpoint_every == 0 or step == tc.steps:
-            saved = save()
-    bar.close()
-    if ac.bc and ac.bc_polish:
-        unpolished = copy.deepcopy(models["actor"].state_dict())
-        saved = save(actor_unpolished=unpolished, actor_polish_last=cloning.polish(models, cfgs, data, device))
+            t0 = time.time()
+        if (step + 1) % tc.checkpoint_every == 0 or step + 1 == tc.steps:
+            saved = keep(step + 1)
+    if ac.bc and ac.bc_polish:  # ours: cloning on the final world model; the checkpoint keeps the unpolished actor to resume from
+        unpolished = copy.deepcopy(actor.state_dict())
+        keep(tc.steps, actor_unpolished=unpolished, actor_polish_last=cloning.polish(models, cfgs, data, device))
     final_report(run_dir, models, cfgs, held_out, device)
-    print(f"wrote {ckpt_path}, {run_dir}/metrics.jsonl")
+    print(f"wrote {ckpt_path}, {log_path}")
     return run_dir
 
 

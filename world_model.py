@@ -34,29 +34,22 @@ from sac import EnsembleLinear
 
 @dataclass
 class WorldModelConfig:
-    obs: str = "pixels"  # 'pixels' (64x64x3, the paper's input) or 'state' (proprioception, the CPU default)
+    obs: str = "state"  # 'state': proprioception (ours, a CPU budget; deviation) or 'pixels': 64x64x3 (the paper)
     deter: int = 200  # GRU state h_t, Dreamer V1
     stoch: int = 30  # Gaussian z_t, Dreamer V1
-    hidden: int = 200  # width of the RSSM's input and head layers, Dreamer V1
-    units: int = 400  # width of the state encoder/decoder MLPs, Dreamer V1's MLP size
+    hidden: int = 256  # width of the RSSM's input and head layers (ours; Dreamer V1: 200)
+    units: int = 256  # width of the state encoder/decoder MLPs (ours; Dreamer V1's MLP size: 400)
     layers: int = 2  # hidden layers of the state encoder/decoder MLPs (ours: a 24-36-d vector needs little)
     cnn_depth: int = 32  # Dreamer V1 (channels 32, 64, 128, 256)
     min_std: float = 0.1  # Dreamer V1: std = softplus(x) + 0.1
     free_nats: float = 1.0  # Dreamer V3: each KL term is clipped below 1 nat per step
     kl_dyn: float = 0.5  # Dreamer V3 KL balancing: weight of KL(sg(post) || prior), trains the prior
     kl_rep: float = 0.1  # Dreamer V3 KL balancing: weight of KL(post || sg(prior)), trains the posterior
-    batch: int = 50  # sequences per batch, Dreamer V1
+    batch: int = 16  # sequences per batch (ours, a CPU budget; Dreamer V1: 50)
     seq_len: int = 50  # steps per sequence, Dreamer V1
     lr: float = 6e-4  # Adam, Dreamer V1
     grad_clip: float = 100.0  # global gradient norm, Dreamer V1
 
-
-PRESETS = {
-    "smoke": dict(obs="state", deter=16, stoch=4, hidden=16, units=16, cnn_depth=4, batch=4, seq_len=8),
-    "cpu": dict(obs="state", deter=200, stoch=30, hidden=256, units=256, batch=16, seq_len=50),
-    # GenRL's sizes (Mazzaglia et al. 2024); deviation: z is 32 Gaussian units, not GenRL's 32 x 32 discrete latent
-    "paper": dict(obs="pixels", deter=1024, stoch=32, hidden=1024, units=1024, cnn_depth=48, batch=48, seq_len=48),
-}
 
 STATE_KEYS = ("deter", "stoch", "mean", "std")  # a latent state: h_t, z_t and the Gaussian (mean, std) z_t came from
 
@@ -83,7 +76,7 @@ def feat(state):
 
 def mlp(inp, units, out, layers):
     """`layers` hidden layers of `units` with SiLU, then a linear output layer. SiLU is Dreamer V3's activation
-    (Dreamer V1 used ELU, which costs ~3x more on a CPU, measured); no LayerNorm, unlike Dreamer V3."""
+    (Dreamer V1 used ELU, which costs more on a CPU); no LayerNorm, unlike Dreamer V3."""
     modules = []
     for _ in range(layers):
         modules += [nn.Linear(inp, units), nn.SiLU()]

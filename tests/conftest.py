@@ -11,9 +11,10 @@ sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 def smoke_data(tmp_path_factory):
     """D_body of the walker and D_demo, smoke preset (a few 20-step episodes), in a temporary data folder."""
     import collect
+    import presets
 
     root = str(tmp_path_factory.mktemp("data"))
-    cfg = collect.CollectConfig(**collect.PRESETS["smoke"])
+    cfg = collect.CollectConfig(**presets.PRESETS["collect"]["smoke"])
     collect.collect_body("walker", cfg, root, workers=2)
     collect.collect_demos(cfg, root, workers=2)
     return root
@@ -38,7 +39,7 @@ def train_args(**given):
     import checkpoint
 
     ns = argparse.Namespace()
-    for name, (cls, _, _) in checkpoint.COMPONENTS.items():
+    for name, (cls, _) in checkpoint.COMPONENTS.items():
         for field in dataclasses.fields(cls):
             setattr(ns, f"{name}.{field.name}", given.get(field.name) if name == "train" else given.get(f"{name}.{field.name}"))
     return ns

@@ -15,8 +15,9 @@ import aime_nob
 import checkpoint
 import genrl
 import ot_reward
+import presets
 
-SMOKE = aime_nob.AIMENoBConfig(**aime_nob.PRESETS["smoke"])
+SMOKE = aime_nob.AIMENoBConfig(**presets.PRESETS["aime_nob"]["smoke"])
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
 

@@ -6,6 +6,7 @@ from torch.distributions import Normal, TanhTransform, TransformedDistribution
 
 import cloning as C
 import policy as P
+import presets
 
 torch.set_num_threads(1)
 
@@ -13,7 +14,7 @@ torch.set_num_threads(1)
 def test_bc_loss_is_tanh_gaussian_nll_of_dataset_actions():
     """bc_loss = -log pi(a_t | s_t, g) of the recorded a_t = action[:, t + 1], checked against torch.distributions."""
     torch.manual_seed(0)
-    cfg = P.ActorCriticConfig(**P.PRESETS["smoke"])
+    cfg = P.ActorCriticConfig(**presets.PRESETS["ac"]["smoke"])
     actor = P.Actor(cfg, 6, 6, 3)
     B, T = 5, 2  # T = 2: only t = 0, whose goal is frame 1 and action action[:, 1]
     feat, goal, action = torch.randn(B, T, 6), torch.randn(B, T, 6), torch.rand(B, T, 3) * 1.6 - 0.8
@@ -55,7 +56,7 @@ def test_advantage_weights_favour_actions_that_bring_the_goal_nearer():
     clipped = C.advantage_weights(critic, Near(), feat, next_feat, goal, 0.99, beta=100.0)
     assert clipped[0] == clipped[1] and clipped[0].item() == pytest.approx(2.0, rel=1e-3)  # 20, 20, ~0, ~0 over their mean 10
     torch.manual_seed(0)
-    actor = P.Actor(P.ActorCriticConfig(**P.PRESETS["smoke"]), 6, 6, 3)
+    actor = P.Actor(P.ActorCriticConfig(**presets.PRESETS["ac"]["smoke"]), 6, 6, 3)
     post, goals, action = torch.randn(5, 4, 6), torch.randn(5, 4, 6), torch.rand(5, 4, 3) * 1.6 - 0.8
     torch.manual_seed(1)
     plain, _ = C.bc_loss(actor, post, goals, action)

@@ -8,8 +8,9 @@ import torch
 import collect
 import envs
 import experts
+import presets
 
-SMOKE = collect.CollectConfig(**collect.PRESETS["smoke"])
+SMOKE = collect.CollectConfig(**presets.PRESETS["collect"]["smoke"])
 
 
 @pytest.fixture(scope="module")
@@ -66,7 +67,7 @@ def test_episodes_do_not_depend_on_the_callers_matmul_route():
 
 
 def test_demo_return_is_sum_of_rewards_and_views_share_motion(tmp_path):
-    cfg = collect.CollectConfig(**dict(collect.PRESETS["smoke"], demo_episodes=1))
+    cfg = collect.CollectConfig(**dict(presets.PRESETS["collect"]["smoke"], demo_episodes=1))
     collect.collect_demos(cfg, str(tmp_path), workers=2)
     folders = sorted(os.listdir(tmp_path / "demos"))
     assert len(folders) == 2 * 4 * 2  # body x task x view
@@ -106,7 +107,7 @@ def test_missing_expert_names_the_command(tmp_path, monkeypatch):
 
 def test_collection_never_replaces_a_written_view(data, tmp_path):
     """A demo whose side view is on disk and diagonal view is not: only the diagonal file is written."""
-    cfg = collect.CollectConfig(**dict(collect.PRESETS["smoke"], demo_episodes=1))
+    cfg = collect.CollectConfig(**dict(presets.PRESETS["collect"]["smoke"], demo_episodes=1))
     side = tmp_path / "demos" / "walker_run_side" / "00.npz"
     side.parent.mkdir(parents=True)
     episode = dict(np.load(os.path.join(data, "walker", "run_0000.npz")))  # any 20-step episode stands in for it
@@ -173,7 +174,7 @@ def test_up_first_episodes_begin_with_the_final_expert_until_the_body_is_up():
     job = dict(kind="stand", body="stickman", task="stand", index=0, snapshot=None, steps=250, noise=0.3, seed=[0, 1, 5],
                views=("side",))
     final = collect.simulate(job)[0]
-    early = experts.history_steps("stickman", "stand")[0]  # 50k steps: does not get up (docs/experiments.md, Datasets)
+    early = experts.history_steps("stickman", "stand")[0]  # 50k steps: does not get up (docs/results.md, Datasets)
     up_first = collect.simulate(dict(job, snapshot=early, up_first=True))[0]
     switch = int(str(up_first["source"]).rsplit("first ", 1)[1].split()[0])
     assert 0 < switch < collect.UP_MAX

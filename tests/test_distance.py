@@ -60,7 +60,7 @@ def test_pairs_stay_inside_a_trajectory_and_negatives_cross_episodes():
 def test_distance_net_learns_temporal_order():
     """Features that drift along a trajectory: after a short fit, later states are predicted further away."""
     torch.manual_seed(0)
-    cfg = DistanceConfig(units=64, layers=2)
+    cfg = DistanceConfig(units=64, layers=2, contrastive_weight=1.0, input="feat")  # Eq. 7 as written
     B, T, F = 8, 10, 4
     dist_net = DistanceNet(cfg, F)
     opt = torch.optim.Adam(dist_net.parameters(), lr=3e-3)
@@ -114,7 +114,7 @@ def test_encoder_goals_a_few_steps_ahead_score_better_than_another_trajectory_s(
     the position (a video window has no history). Trained with encoder goals, -d ranks a goal k steps ahead of the
     same trajectory above the goal of another trajectory's frame, and nearer goals above farther ones."""
     torch.manual_seed(0)
-    cfg = DistanceConfig(units=64, layers=2)
+    cfg = DistanceConfig(units=64, layers=2, contrastive_weight=1.0, input="feat")  # Eq. 7 as written
     B, T = 16, 12
     dist_net = DistanceNet(cfg, 2)
     opt = torch.optim.Adam(dist_net.parameters(), lr=3e-3)
@@ -142,9 +142,10 @@ def test_encoder_goals_a_few_steps_ahead_score_better_than_another_trajectory_s(
 
 
 def test_obs_input_reads_the_decoded_observation_and_leaves_the_decoder_to_the_world_model():
+    import presets
     import world_model as W
 
-    wm = W.WorldModel(W.WorldModelConfig(**W.PRESETS["smoke"]), 5, 2)
+    wm = W.WorldModel(W.WorldModelConfig(**presets.PRESETS["wm"]["smoke"]), 5, 2)
     dist_net = DistanceNet(DistanceConfig(units=8, layers=1, input="obs"), wm.feat_dim, wm.decoder)
     assert not any(n.startswith("embed") for n, _ in dist_net.named_parameters()) and len(list(dist_net.parameters())) == 4
     feat_i, feat_j = torch.randn(3, wm.feat_dim), torch.randn(3, wm.feat_dim)

@@ -12,8 +12,9 @@ import torch
 
 import checkpoint
 import genrl
+import presets
 
-SMOKE = genrl.GenRLConfig(**genrl.PRESETS["smoke"])
+SMOKE = genrl.GenRLConfig(**presets.PRESETS["genrl"]["smoke"])
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
 

@@ -4,17 +4,18 @@ import torch
 import torch.nn.functional as F
 from torch.distributions import Independent, Normal, kl_divergence
 
+import presets
 import world_model as W
-from goal_vae import PRESETS, GoalVAE, GoalVAEConfig
+from goal_vae import GoalVAE, GoalVAEConfig
 
 torch.set_num_threads(1)
 D = 8
 
 
 def models():
-    cfg = W.WorldModelConfig(**W.PRESETS["smoke"])
+    cfg = W.WorldModelConfig(**presets.PRESETS["wm"]["smoke"])
     world_model = W.WorldModel(cfg, 5, 2)
-    vae = GoalVAE(GoalVAEConfig(**PRESETS["smoke"]), D, cfg.deter, cfg.stoch)
+    vae = GoalVAE(GoalVAEConfig(**presets.PRESETS["goal"]["smoke"]), D, cfg.deter, cfg.stoch)
     return world_model, vae
 
 

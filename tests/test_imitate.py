@@ -11,9 +11,10 @@ import torch
 import checkpoint
 import imitate
 import ot_reward
+import presets
 from conftest import docs_script
 
-SMOKE = imitate.ImitateConfig(**imitate.PRESETS["smoke"])
+SMOKE = imitate.ImitateConfig(**presets.PRESETS["imitate"]["smoke"])
 
 
 def test_zero_shot_and_finetune_end_to_end(smoke_run):

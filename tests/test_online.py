@@ -7,10 +7,11 @@ import checkpoint
 import envs
 import imitate
 import online
+import presets
 import tables
 import video_encoder
 
-SMOKE = imitate.ImitateConfig(**imitate.PRESETS["smoke"])
+SMOKE = imitate.ImitateConfig(**presets.PRESETS["imitate"]["smoke"])
 
 
 def test_successive_halving_finds_the_best_candidate_under_noise():

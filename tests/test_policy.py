@@ -6,8 +6,9 @@ import torch
 from torch.distributions import Normal, TanhTransform, TransformedDistribution
 
 import policy as P
+import presets
 import world_model as W
-from distance import PRESETS as DIST_PRESETS, DistanceConfig, DistanceNet
+from distance import DistanceConfig, DistanceNet
 
 torch.set_num_threads(1)
 
@@ -35,7 +36,7 @@ def test_lambda_return_matches_the_plain_definition():
 
 def test_tanh_gaussian_log_prob_matches_torch_distributions():
     torch.manual_seed(0)
-    cfg = P.ActorCriticConfig(**P.PRESETS["smoke"])
+    cfg = P.ActorCriticConfig(**presets.PRESETS["ac"]["smoke"])
     actor = P.Actor(cfg, 6, 3, 2).double()
     feat, goal = torch.randn(50, 6, dtype=torch.float64), torch.randn(50, 3, dtype=torch.float64)
     action, log_prob = actor(feat, goal)
@@ -51,7 +52,7 @@ def test_mixture_log_prob_matches_torch_distributions_and_forward_samples_it():
     from torch.distributions import Categorical, Independent, MixtureSameFamily
 
     torch.manual_seed(0)
-    cfg = P.ActorCriticConfig(**P.PRESETS["smoke"], mixture=3)
+    cfg = P.ActorCriticConfig(**presets.PRESETS["ac"]["smoke"], mixture=3)
     actor = P.Actor(cfg, 6, 3, 2).double()
     feat, goal = torch.randn(50, 6, dtype=torch.float64), torch.randn(50, 3, dtype=torch.float64)
     logits, mean, std = actor.components(feat, goal)
@@ -91,8 +92,8 @@ def test_an_actor_on_decoded_observations_reads_them_alone_and_leaves_the_decode
     """cfg.actor_input 'obs': pi is the MLP on [decoder(s), decoder(g)] (the action depends on s only through what the
     decoder reads of it); its loss gives the decoder's weights no gradient and its input (the goal, in phase 2) one."""
     torch.manual_seed(0)
-    wm = W.WorldModel(W.WorldModelConfig(**W.PRESETS["smoke"]), 5, 2)
-    cfg = P.ActorCriticConfig(**P.PRESETS["smoke"], actor_input="obs")
+    wm = W.WorldModel(W.WorldModelConfig(**presets.PRESETS["wm"]["smoke"]), 5, 2)
+    cfg = P.ActorCriticConfig(**presets.PRESETS["ac"]["smoke"], actor_input="obs")
     actor = P.Actor(cfg, wm.feat_dim, wm.feat_dim, 2, wm.decoder)
     assert actor.net[0].in_features == 2 * 5
     feat, goal = torch.randn(7, wm.feat_dim), torch.randn(7, wm.feat_dim, requires_grad=True)
@@ -106,10 +107,10 @@ def test_an_actor_on_decoded_observations_reads_them_alone_and_leaves_the_decode
 
 
 def make_agents(goal_dim=None):
-    cfg = P.ActorCriticConfig(**P.PRESETS["smoke"])
-    world_model = W.WorldModel(W.WorldModelConfig(**W.PRESETS["smoke"]), 5, 2)
+    cfg = P.ActorCriticConfig(**presets.PRESETS["ac"]["smoke"])
+    world_model = W.WorldModel(W.WorldModelConfig(**presets.PRESETS["wm"]["smoke"]), 5, 2)
     F = world_model.feat_dim
-    dist_net = DistanceNet(DistanceConfig(**DIST_PRESETS["smoke"]), F)
+    dist_net = DistanceNet(DistanceConfig(**presets.PRESETS["dist"]["smoke"], input="feat"), F)
     actor = P.Actor(cfg, F, F, 2)
     critic, slow_critic = P.make_critics(cfg, F, F if goal_dim is None else goal_dim)
     return cfg, world_model, dist_net, actor, critic, slow_critic
@@ -202,7 +203,7 @@ def test_sample_starts_are_distinct_detached_posterior_states():
 
 def test_actor_with_its_goal_input_computed_once_equals_the_concatenated_layer():
     torch.manual_seed(0)
-    cfg = P.ActorCriticConfig(**P.PRESETS["smoke"])
+    cfg = P.ActorCriticConfig(**presets.PRESETS["ac"]["smoke"])
     actor = P.Actor(cfg, 6, 4, 3)
     feat, goal = torch.randn(7, 6), torch.randn(7, 4)
     mean, std = actor.distribution(feat, goal)
@@ -219,7 +220,7 @@ def test_act_scales_the_noise_of_pi_by_the_temperature_and_is_the_mean_at_zero()
     """a = tanh(mean + T std eps): at T = 0 the deterministic action, drawing no random numbers; at T > 0 the noise
     atanh(a) - mean is T std times the seeded eps (T = 1: forward's sample)."""
     torch.manual_seed(0)
-    actor = P.Actor(P.ActorCriticConfig(**P.PRESETS["smoke"]), 6, 4, 3)
+    actor = P.Actor(P.ActorCriticConfig(**presets.PRESETS["ac"]["smoke"]), 6, 4, 3)
     feat, goal = torch.randn(50, 6), torch.randn(50, 4)
     with torch.no_grad():
         mean, std = actor.distribution(feat, goal)
@@ -385,7 +386,7 @@ def test_uncertainty_penalty_lowers_the_returns_by_the_lambda_return_of_minus_la
 
 def test_critic_with_the_goal_share_computed_once_equals_the_mlp_on_feat_and_goal():
     torch.manual_seed(0)
-    cfg = P.ActorCriticConfig(**P.PRESETS["smoke"])
+    cfg = P.ActorCriticConfig(**presets.PRESETS["ac"]["smoke"])
     critic = P.Critic(cfg, 6, 4)
     feat, goal = torch.randn(5, 3, 6), torch.randn(5, 4)  # (N, H + 1, F), (N, G)
     expected = critic.net(torch.cat([feat, goal[:, None].expand(-1, 3, -1)], -1)).squeeze(-1)
@@ -403,7 +404,7 @@ def test_feature_reward_is_the_cosine_of_the_goal_decoders_features():
     feat = torch.tensor([[[0.0, 9.0], [5.0, 0.0], [0.0, 1.0]], [[0.0, 1.0], [0.0, 2.0], [1.0, 1.0]]])  # (N, H + 1, F)
     reward = P.feature_reward(Decoder(), feat, goal)
     assert reward.shape == (2, 2) and torch.allclose(reward, torch.tensor([[1.0, 0.0], [1.0, 2**-0.5]]))
-    cfg = P.ActorCriticConfig(**P.PRESETS["smoke"], reward="features")
+    cfg = P.ActorCriticConfig(**presets.PRESETS["ac"]["smoke"], reward="features")
     with pytest.raises(ValueError, match="--ac-reward 'features'"):
         P.policy_losses(None, None, None, None, None, None, {}, goal, cfg)
 

@@ -27,7 +27,7 @@ from conftest import train_args
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 TINY = dict(steps=12, seed_steps=4, batch=8, hidden=8, snapshot_every=6, eval_every=10_000, checkpoint_minutes=0.0, final_episodes=1)
-SMOKE_IMITATE = imitate.ImitateConfig(**imitate.PRESETS["smoke"])
+SMOKE_IMITATE = imitate.ImitateConfig(**presets.PRESETS["imitate"]["smoke"])
 # train.py run as a script that SIGKILLs itself while writing its second checkpoint (update 6 of the smoke preset),
 # leaving a half-written temporary file, metrics rows past its checkpoint and its lock behind
 KILLED_TRAIN = """
@@ -152,7 +152,7 @@ def test_collection_into_another_presets_folder_is_refused(smoke_data, tmp_path)
     data = str(tmp_path / "data")
     shutil.copytree(os.path.join(smoke_data, "walker"), os.path.join(data, "walker"))
     before = snapshot(data)
-    longer = collect.CollectConfig(**dict(collect.PRESETS["smoke"], explore_episodes=3, episode_steps=30))
+    longer = collect.CollectConfig(**dict(presets.PRESETS["collect"]["smoke"], explore_episodes=3, episode_steps=30))
     with pytest.raises(ValueError, match=r"explore_0000.npz is not a 30-step episode .*pass another --data"):
         collect.collect_body("walker", longer, data, workers=1)
     assert snapshot(data) == before
@@ -233,7 +233,7 @@ def test_train_flags_out_of_range(given, message, smoke_data, tmp_path):
 ])
 def test_imitate_flags_out_of_range(given, message, smoke_run, tmp_path):
     run = copy_run(smoke_run, tmp_path)
-    ic = imitate.ImitateConfig(**{**imitate.PRESETS["smoke"], **given})
+    ic = imitate.ImitateConfig(**{**presets.PRESETS["imitate"]["smoke"], **given})
     with pytest.raises(ValueError, match=message):
         imitate.imitate(run, "walker_run", "side", True, ic)
     assert not os.path.exists(os.path.join(run, "results.jsonl"))
@@ -241,9 +241,9 @@ def test_imitate_flags_out_of_range(given, message, smoke_run, tmp_path):
 
 def test_every_preset_passes_the_checks_and_the_command_line_prints_one_line():
     for preset in ("smoke", "cpu", "paper"):
-        for name, (cls, component_presets, prefix) in checkpoint.COMPONENTS.items():
-            rundir.check_flags(cls(**component_presets[preset]), prefix)
-        rundir.check_flags(imitate.ImitateConfig(**imitate.PRESETS[preset]))
+        for name, (cls, prefix) in checkpoint.COMPONENTS.items():
+            rundir.check_flags(cls(**presets.PRESETS[name][preset]), prefix)
+        rundir.check_flags(imitate.ImitateConfig(**presets.PRESETS["imitate"][preset]))
     rundir.check_flags(experts.ExpertConfig())
     with pytest.raises(ValueError, match="--snapshot-every 0: must be >= 1"):
         rundir.check_flags(experts.ExpertConfig(snapshot_every=0))
@@ -519,7 +519,7 @@ def test_ctrl_c_then_the_same_imitate_command_goes_on_without_duplicates(smoke_r
     assert out.stderr.splitlines()[-1] == "interrupted: every evaluation finished is in the run's results.jsonl: the same command goes on from there"
     path = os.path.join(run, "results.jsonl")
     assert [(r["method"], r["seed"]) for r in rundir.read_jsonl(path)] == [("GIIL-ZS", 0), ("GIIL-ZS", 1), ("GIIL-ZS (demo 0)", 0)]
-    ic = imitate.ImitateConfig(**imitate.PRESETS["smoke"], preset="smoke")  # what --preset smoke makes
+    ic = imitate.ImitateConfig(**presets.PRESETS["imitate"]["smoke"], preset="smoke")  # what --preset smoke makes
     rows = imitate.imitate(run, "walker_run", "side", True, ic)
     assert [(r["method"], r["seed"]) for r in rows] == [("GIIL-FT", 0), ("GIIL-ZS (demo 0)", 1), ("GIIL-FT", 1)]
     assert imitate.imitate(run, "walker_run", "side", True, ic) == [] and len(rundir.read_jsonl(path)) == 6
@@ -532,7 +532,7 @@ def test_an_empty_episode_file_is_collected_again(smoke_data, tmp_path):
     path = os.path.join(data, "demos", "walker_run_side", "01.npz")
     before = dict(np.load(path))
     open(path, "wb").close()  # zero bytes: a disk that was full, a copy cut off
-    collect.collect_demos(collect.CollectConfig(**collect.PRESETS["smoke"]), data, workers=1, demos=[("walker", "run")])
+    collect.collect_demos(collect.CollectConfig(**presets.PRESETS["collect"]["smoke"]), data, workers=1, demos=[("walker", "run")])
     after = dict(np.load(path))
     assert all(np.array_equal(after[k], before[k]) for k in ("state", "action", "pixels")) and np.allclose(after["p"], before["p"], atol=1e-5)
     assert sorted(os.listdir(os.path.dirname(path))) == ["00.npz", "01.npz"]

@@ -5,10 +5,11 @@ import os
 import shutil
 
 import imitate
+import presets
 import tables
 from conftest import docs_script
 
-SMOKE = imitate.ImitateConfig(**imitate.PRESETS["smoke"])
+SMOKE = imitate.ImitateConfig(**presets.PRESETS["imitate"]["smoke"])
 
 
 def test_table_keeps_finished_cells(smoke_run, tmp_path):
@@ -98,8 +99,6 @@ def test_shards_split_the_settings_asked_for(smoke_run, tmp_path, monkeypatch):
 def test_baselines_join_the_table_as_columns_and_are_not_rerun(smoke_run, tmp_path):
     """--methods giil,genrl,aime-nob: each cell asked for gets the baselines' seeds, the tables show
     their columns beside the paper's, and a second call runs nothing; an unknown method is a one-line error."""
-    import aime_nob
-    import genrl
     import pytest
 
     run = str(tmp_path / "run")
@@ -108,7 +107,7 @@ def test_baselines_join_the_table_as_columns_and_are_not_rerun(smoke_run, tmp_pa
     one_cell = dict(demos_per_cell=2, shard=(0, 16))  # cell 0: stand, SE-SV
     imitate.table(run, smoke, methods=("genrl", "aime-nob"), **one_cell)
     rows = tables.load_results(run)
-    seeds = {m: genrl.PRESETS["smoke"]["seeds"] if m == "GenRL" else aime_nob.PRESETS["smoke"]["seeds"] for m in ("GenRL", "AIME-NoB")}
+    seeds = {m: presets.PRESETS["genrl"]["smoke"]["seeds"] if m == "GenRL" else presets.PRESETS["aime_nob"]["smoke"]["seeds"] for m in ("GenRL", "AIME-NoB")}
     assert {r["method"] for r in rows} == {"GenRL", "AIME-NoB"} and {(r["task"], r["setting"]) for r in rows} == {("stand", "SE-SV")}
     assert len(rows) == sum(seeds.values())  # each baseline's seeds, no GIIL (not asked for)
     text = open(os.path.join(run, "tables.md")).read()

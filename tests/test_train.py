@@ -22,7 +22,7 @@ from conftest import train_args
 
 def test_smoke_run_writes_checkpoint_metrics_and_goal_reaching(smoke_run):
     ckpt = torch.load(os.path.join(smoke_run, "checkpoint.pt"), weights_only=True)
-    assert ckpt["step"] == checkpoint.TRAIN_PRESETS["smoke"]["steps"] and ckpt["encoder"] == "default-v1"
+    assert ckpt["step"] == presets.PRESETS["train"]["smoke"]["steps"] and ckpt["encoder"] == "default-v1"
     assert ckpt["config"]["wm"]["obs"] == "state" and ckpt["config"]["wm"]["deter"] == 16  # the smoke preset, resolved
     lines = [json.loads(l) for l in open(os.path.join(smoke_run, "metrics.jsonl"))]
     assert [l["step"] for l in lines] == [2, 4, 6] and "actor_loss" in lines[-1] and "open_loop" in lines[-1] and -1 <= lines[-1]["open_loop_p_cos"] <= 1
@@ -111,7 +111,7 @@ def test_a_smaller_older_d_body_grows_to_the_preset_before_training(smoke_data, 
     older = {k: v for k, v in json.load(open(complete)).items() if k != "up_first"}  # written before up_first existed
     open(complete, "w").write(json.dumps(older))
     before = {n: os.path.getmtime(os.path.join(folder, n)) for n in os.listdir(folder) if n.endswith(".npz")}
-    monkeypatch.setitem(collect.PRESETS, "smoke", {**collect.PRESETS["smoke"], "task_episodes": 2})
+    monkeypatch.setitem(presets.PRESETS["collect"], "smoke", {**presets.PRESETS["collect"]["smoke"], "task_episodes": 2})
     cfgs = train.resolve_configs(train_args(data=root), "smoke")
     _, data, held_out, _ = train.prepare_data(cfgs)
     names = [n for n in os.listdir(folder) if n.endswith(".npz")]
@@ -191,7 +191,7 @@ def test_a_copy_of_an_exported_agent_trains_on_from_its_weights(smoke_run, smoke
     run = str(tmp_path / "longer")
     rundir.export_agent(smoke_run, run)
     shipped = torch.load(os.path.join(run, "checkpoint.pt"), weights_only=True)
-    steps = checkpoint.TRAIN_PRESETS["smoke"]["steps"]
+    steps = presets.PRESETS["train"]["smoke"]["steps"]
     train.train(train.resolve_configs(train_args(data=smoke_data, steps=steps + 2), "smoke"), run, resume=True)
     ckpt = torch.load(os.path.join(run, "checkpoint.pt"), weights_only=True)
     assert ckpt["step"] == steps + 2 and "optims" in ckpt

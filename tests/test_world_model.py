@@ -5,13 +5,14 @@ import torch
 import torch.nn.functional as F
 from torch.distributions import Independent, Normal, kl_divergence
 
+import presets
 import world_model as W
 
 torch.set_num_threads(1)
 
 
 def smoke_model(obs="state", obs_dim=5, action_dim=2, **overrides):
-    cfg = W.WorldModelConfig(**{**W.PRESETS["smoke"], "obs": obs, **overrides})
+    cfg = W.WorldModelConfig(**{**presets.PRESETS["wm"]["smoke"], "obs": obs, **overrides})
     obs_shape = obs_dim if obs == "state" else (64, 64, 3)
     return W.WorldModel(cfg, obs_shape, action_dim), obs_shape
 
