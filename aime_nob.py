@@ -116,8 +116,7 @@ def train_seed(cell, nc, body, encoder, demo_p, seed):
     ac, wc = cfgs["ac"], cfgs["wm"]
     wm = models["world_model"]
     wm.load_state_dict(cell["ckpt"]["models"]["world_model"])  # every seed starts from the phase-1 world model
-    task_ac = dataclasses.replace(ac, actor_input="feat", mixture=1)  # the baseline's own actor, Dreamer's, whatever phase 1's reads
-    actor = policy.Actor(task_ac, wm.feat_dim, 1, wm.action_dim).to(device)
+    actor = policy.Actor(ac, wm.feat_dim, 1, wm.action_dim).to(device)  # the baseline's own actor, the run's sizes
     critic, slow_critic = (m.to(device) for m in policy.make_critics(ac, wm.feat_dim, 0))
     reward_head = mlp(wm.feat_dim, ac.units, 1, ac.critic_layers).to(device)  # r(s_t) of the OT label of o_t
     return_norm = policy.ReturnNorm(ac.return_norm_decay).to(device)

@@ -35,13 +35,11 @@ class TrainConfig:
     holdout_every: int = 20  # every 20th D_body episode is held out of training, for evaluate.evaluate_imagination (ours)
     eval_episodes: int = 3  # goal-reaching benchmark (evaluate.py, ours): episodes per own-body demo goal
     eval_steps: int = 500  # agent steps per goal-reaching episode (a whole episode)
-    act_temperature: float = 0.0  # how the benchmark's policy acts, policy.Actor.act: 0 = tanh of the mean (Dreamer; more: ours, not kept)
     eval_seed: int = 30_000  # the benchmark's first environment seed; another gives fresh start poses, to confirm a choice made on it
     log_every: int = 100
     checkpoint_every: int = 250
     data: str = "data"  # the datasets' folder (presets.DATA)
     encoder: str = "default"  # video encoder of the features p_t (video_encoder.py)
-    cover_edges: int = 0  # 1: D_body segments cover an episode's first steps at least as often as its middle (collect.Segments; ours, not kept)
     threads: int = 1  # torch CPU threads (ours: these small models ran faster on 1 than on 2 with the cores shared, docs/results.md, Speed)
 
 
@@ -53,6 +51,10 @@ COMPONENTS = {
     "dist": (distance.DistanceConfig, "dist-"),
     "ac": (policy.ActorCriticConfig, "ac-"),
 }
+# Switches measured worse and deleted, at the value that turned each off (docs/ablations.md names each one's result and
+# the commit that had it): a stored config that holds one at that value loads as before, one trained with it on is refused
+REMOVED = {"train": dict(act_temperature=0.0, cover_edges=0),
+           "ac": dict(reward="distance", mixture=1, actor_input="feat", bc_awr=0.0, uncertainty=0.0, bc_polish_ema=0.0, bc_polish_fresh=0)}
 DIVERGED = 1e10  # |loss| above this is divergence (ours: the smoke preset's losses are below 100; a learning rate of 1e3 on
 # the goal VAE, distance or critic gave losses of 1e20 and more within 4 updates)
 
@@ -62,26 +64,37 @@ def build_models(cfgs, obs_shape, action_dim, p_dim, device):
     wm = world_model.WorldModel(cfgs["wm"], obs_shape, action_dim)
     if cfgs["dist"].input == "obs" and cfgs["wm"].obs != "state":
         raise ValueError("--dist-input obs reads decoded state vectors: with --obs pixels pass --dist-input feat")
-    if cfgs["ac"].actor_input == "obs" and cfgs["wm"].obs != "state":
-        raise ValueError("--ac-actor-input obs reads decoded state vectors: with --obs pixels pass --ac-actor-input feat")
     models = {
         "world_model": wm,
         "goal_vae": goal_vae.GoalVAE(cfgs["goal"], p_dim, cfgs["wm"].deter, cfgs["wm"].stoch),
         "dist_net": distance.DistanceNet(cfgs["dist"], wm.feat_dim, wm.decoder if cfgs["dist"].input == "obs" else None),
-        "actor": policy.Actor(cfgs["ac"], wm.feat_dim, wm.feat_dim, action_dim, wm.decoder),
+        "actor": policy.Actor(cfgs["ac"], wm.feat_dim, wm.feat_dim, action_dim),
         "return_norm": policy.ReturnNorm(cfgs["ac"].return_norm_decay),
     }
     models["critic"], models["slow_critic"] = policy.make_critics(cfgs["ac"], wm.feat_dim, wm.feat_dim)
-    if cfgs["ac"].uncertainty:  # only then: runs and agents without it keep their set of models
-        models["ensemble"] = world_model.Disagreement.of(wm)
     return {k: m.to(device) for k, m in models.items()}
+
+
+def stored_configs(ckpt, path):
+    """A checkpoint's configs {component: dataclass}. A field it lacks came after it was written and reads as today's
+    default; a field since deleted (REMOVED) is dropped at its off value, and a one-line error otherwise."""
+    cfgs = {}
+    for name, fields in ckpt["config"].items():
+        cls, prefix = COMPONENTS[name]
+        known = {f.name for f in dataclasses.fields(cls)}
+        for field, value in fields.items():
+            if field not in known and REMOVED.get(name, {}).get(field, object()) != value:
+                raise ValueError(f"{path} was trained with --{prefix}{field.replace('_', '-')} {value}, a variant measured worse and deleted "
+                                 f"(docs/ablations.md): load it with the code of commit 5fb4022")
+        cfgs[name] = cls(**{k: v for k, v in fields.items() if k in known})
+    return cfgs
 
 
 def load_run(run_dir, device="cpu", env=None):
     """A trained run: (configs, models, checkpoint metadata), checked against --env and its folder's name
     (rundir.run_checkpoint). Errors name the command that makes one."""
     ckpt = rundir.run_checkpoint(run_dir, device, env)
-    cfgs = {name: COMPONENTS[name][0](**fields) for name, fields in ckpt["config"].items()}
+    cfgs = stored_configs(ckpt, os.path.join(run_dir, "checkpoint.pt"))
     models = build_models(cfgs, ckpt["obs_shape"], ckpt["action_dim"], ckpt["p_dim"], device)
     for name, model in models.items():
         model.load_state_dict(ckpt["models"][name])

@@ -210,27 +210,20 @@ def load_episode(path, keys=tuple(KEYS)):
 class Segments:
     """Random (B, T) segments of whole episodes (never crossing an episode's end), as torch tensors. A segment starts
     uniformly in [0, L - T] of its episode, so step t < T of an episode lies in one only (t + 1) / T as often as a
-    middle step. With cover_edges (ours, train.py's --cover-edges), starts are uniform in [-(T - 1), L - 1] and
-    clipped into [0, L - T]: every step lies in a segment at least as often as a middle step (the first T steps 1-2x
-    as often), so an episode's first steps, where a body that starts in a random pose falls and gets up, are not
-    the rarest of D_body (docs/experiments.md)."""
+    middle step (Dreamer's sampling)."""
 
-    def __init__(self, episodes, keys, seq_len, cover_edges=False):
+    def __init__(self, episodes, keys, seq_len):
         lengths = np.array([len(e["is_first"]) for e in episodes])
         if lengths.min() < seq_len:
             raise ValueError(f"episodes of {lengths.min()} steps are shorter than the segment length {seq_len}: collect longer episodes or pass --wm-seq-len")
         self.data = {k: np.concatenate([e[k] for e in episodes]) for k in keys}
         self.starts = np.concatenate([[0], np.cumsum(lengths)[:-1]])
-        self.lengths, self.seq_len, self.cover_edges = lengths, seq_len, cover_edges
+        self.lengths, self.seq_len = lengths, seq_len
 
     def sample(self, batch, rng, device):
         episode = rng.integers(len(self.lengths), size=batch)
         T, L = self.seq_len, self.lengths[episode]
-        if self.cover_edges:
-            offset = np.clip((rng.random(batch) * (L + T - 1)).astype(int) - (T - 1), 0, L - T)
-        else:
-            offset = (rng.random(batch) * (L - T + 1)).astype(int)
-        start = self.starts[episode] + offset
+        start = self.starts[episode] + (rng.random(batch) * (L - T + 1)).astype(int)
         index = start[:, None] + np.arange(T)  # (B, T)
         out = {k: torch.as_tensor(v[index], device=device) for k, v in self.data.items()}
         out["episode"] = torch.as_tensor(episode, device=device)

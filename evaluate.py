@@ -31,9 +31,9 @@ import rundir
 
 
 @torch.no_grad()
-def run_episodes(env_list, models, goals, steps, obs_key, seed, render=False, random_actions=False, on_step=None, on_state=None, temperature=0.0):
-    """One episode in each env of env_list (reset with seeds seed, seed + 1, ...), acting with pi(a | s_t, g_i) at
-    `temperature` (policy.Actor.act; 0: the tanh of the mean), or uniform random actions. goals (N, F), unused with random_actions.
+def run_episodes(env_list, models, goals, steps, obs_key, seed, render=False, random_actions=False, on_step=None, on_state=None):
+    """One episode in each env of env_list (reset with seeds seed, seed + 1, ...), acting with pi(a | s_t, g_i)
+    (policy.Actor.act: the tanh of its mean), or uniform random actions. goals (N, F), unused with random_actions.
     on_step(env_list), if given, is called after every step (probes read the physics there); on_state(state), with the
     posterior state dict of (N, .) of every step t = 0 .. steps (not with random_actions).
     seed may also be a list of N env seeds (online.py: several goals from one start state).
@@ -61,7 +61,7 @@ def run_episodes(env_list, models, goals, steps, obs_key, seed, render=False, ra
         if random_actions:
             action = rng.uniform(-1, 1, (N, A)).astype(np.float32)
         else:
-            action = actor.act(wm.feat(state), goals, temperature).cpu().numpy()
+            action = actor.act(wm.feat(state), goals).cpu().numpy()
         results = [env.step(a) for env, a in zip(env_list, action)]
         obs = np.stack([r[0] for r in results])
         total += [r[1] for r in results]
@@ -149,8 +149,7 @@ def goal_reaching(models, cfgs, episodes=3, steps=envs.EPISODE_STEPS, tasks=envs
         env_list = [envs.make_env(body, task) for _ in range(len(goals))]
         out[task] = {}
         for name in tqdm(("policy", "random"), desc=f"goal reaching {body} {task}", leave=False):
-            returns, _ = run_episodes(env_list, models, goals, steps, cfgs["wm"].obs, cfgs["train"].eval_seed, random_actions=name == "random",
-                                      temperature=cfgs["train"].act_temperature)
+            returns, _ = run_episodes(env_list, models, goals, steps, cfgs["wm"].obs, cfgs["train"].eval_seed, random_actions=name == "random")
             out[task][name] = [episode_score(task, r, steps) for r in returns]
     return out
 
@@ -178,7 +177,7 @@ def write_goal_reaching(run_dir, scores):
 
 
 def learning_curve(run_dir):
-    """runs/<name>/learning_curve.png from metrics.jsonl: Eq. 4's imagined goal reward (both readings, policy.policy_losses, and
+    """runs/<name>/learning_curve.png from metrics.jsonl: Eq. 4's imagined goal reward (policy.policy_losses, and
     on reachable goals, reachable_goal_reward), Eq. 7's distances of encoder
     goals 1 and 15 steps ahead, and the world model's and goal VAE's losses, against updates."""
     import matplotlib
@@ -187,11 +186,10 @@ def learning_curve(run_dir):
     import matplotlib.pyplot as plt
 
     rows = [json.loads(line) for line in open(os.path.join(run_dir, "metrics.jsonl"))]
-    fig, axes = plt.subplots(1, 4, figsize=(17, 3.2))
-    series = [("Eq. 4 imagined goal reward -d(s, g)", [("reward_distance", "training goals"), ("reward_reachable", "reachable g", 0),
+    fig, axes = plt.subplots(1, 3, figsize=(13, 3.2))
+    series = [("Eq. 4 imagined goal reward -d(s, g)", [("reward", "training goals"), ("reward_reachable", "reachable g", 0),
                                                        ("reward_reachable", "reachable g, pi given another g", 1),
                                                        ("reward_reachable", "reachable g, random actions", 2)]),
-              ("its feature reading", [("reward_feature", "cos(p_hat(s), p_hat(g)), training goals")]),
               ("Eq. 7: d(s_t, q(s | p_t+k))", [("d_enc", "k = 1", 0), ("d_enc", "k = 15", 2), ("d_enc", "other episode", 4)]),
               ("losses", [("wm_loss", "Eq. 2 world model"), ("goal_loss", "Eq. 3 goal VAE"), ("bc_loss", "hindsight BC")])]
     for ax, (title, keys) in zip(axes, series):

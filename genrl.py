@@ -117,14 +117,14 @@ def train_policy(models, cfgs, gc, target, segments, seed, device):
     torch.manual_seed(seed)
     rng = np.random.default_rng(seed)
     ac, wc, wm = cfgs["ac"], cfgs["wm"], models["world_model"]
-    task_ac = dataclasses.replace(ac, actor_input="feat", mixture=1)  # the baseline's own actor, Dreamer's, whatever phase 1's reads
-    actor = policy.Actor(task_ac, wm.feat_dim, 1, wm.action_dim).to(device)
+    actor = policy.Actor(ac, wm.feat_dim, 1, wm.action_dim).to(device)  # the baseline's own actor, the run's sizes
     critic, slow_critic = (m.to(device) for m in policy.make_critics(ac, wm.feat_dim, 0))
     return_norm = policy.ReturnNorm(ac.return_norm_decay).to(device)
-    optims = [(torch.optim.Adam(actor.parameters(), lr=ac.actor_lr), actor), (torch.optim.Adam(critic.parameters(), lr=ac.critic_lr), critic)]
+    optims = [torch.optim.Adam(actor.parameters(), lr=ac.actor_lr), torch.optim.Adam(critic.parameters(), lr=ac.critic_lr)]
+    stop = lambda: f"no row is written for seed {seed} (the run's --ac-actor-lr {ac.actor_lr}, --ac-critic-lr {ac.critic_lr} too high here?)"
     goal = no_goal(1, device)
     bar = tqdm(range(gc.steps), desc=f"{METHOD} seed {seed}", leave=False)
-    for _ in bar:
+    for step in bar:
         batch = segments.sample(wc.batch, rng, device)
         with torch.no_grad():
             post, _ = wm.observe(batch[wc.obs], batch["action"], batch["is_first"])
@@ -136,11 +136,8 @@ def train_policy(models, cfgs, gc, target, segments, seed, device):
             returns = policy.lambda_return(reward, value, ac.gamma, ac.lambda_)  # (N, H)
         a_loss, metrics = policy.actor_loss(returns, log_prob, return_norm, ac.entropy)
         c_loss, _ = policy.critic_loss(critic, feat, None, returns)
-        for (opt, module), loss in zip(optims, (a_loss, c_loss)):
-            opt.zero_grad(set_to_none=True)
-            loss.backward()
-            torch.nn.utils.clip_grad_norm_(module.parameters(), ac.grad_clip)
-            opt.step()
+        for opt, loss, what in zip(optims, (a_loss, c_loss), ("actor loss", "critic loss")):
+            checkpoint.checked_step(opt, loss, f"{METHOD} seed {seed}: the {what}", step, stop, ac.grad_clip)
         policy.ema_update(slow_critic, critic, ac.slow_critic_rate)
         bar.set_postfix(sim=f"{reward.mean().item():.3f}", ret=f"{metrics['return']:.2f}")
     return actor

@@ -66,7 +66,6 @@ class ImitateConfig:
     seeds: int = 5  # GIIL-FT seeds (the paper: 3; 5 so that FT vs ZS(demo 0) is measured beyond the noise)
     eval_episodes: int = 3  # episodes per GIIL-ZS goal and per GIIL-FT seed
     eval_steps: int = envs.EPISODE_STEPS
-    act_temperature: float = 0.0  # how the policy acts in the real environment, policy.Actor.act: 0 = tanh of the mean (ours; train.py's)
     video: int = 1  # write demo | agent side-by-side videos
 
 
@@ -113,7 +112,7 @@ def multi_goal_loss(models, start, goal, body_goals, bc, cfgs):  # Eq. 4 during 
     n = len(start["deter"])
     goals = torch.cat([goal.detach().expand(n // 2, -1), body_goals[torch.randint(len(body_goals), (n - n // 2,))]])
     a_loss, c_loss, metrics = policy.policy_losses(models["world_model"], models["dist_net"], models["actor"], models["critic"],
-                                                   models["slow_critic"], models["return_norm"], start, goals, ac, models["goal_vae"], other_reading=False)
+                                                   models["slow_critic"], models["return_norm"], start, goals, ac)
     if ac.bc:
         a_loss = a_loss + ac.bc * cloning.bc_loss(models["actor"], bc["feat"], bc["goal"], bc["action"], bc["final"], ac.bc_final)[0]
     return a_loss, c_loss, metrics
@@ -221,7 +220,7 @@ def imitate(run_dir, demo, view, finetune, ic, zero_shot=True, done=None, online
         render = bool(ic.video) and seed == 0
         env_list = [envs.make_env(tc.env, task) for _ in range(ic.eval_episodes)]
         returns, frames = evaluate.run_episodes(env_list, models, goal[None].expand(ic.eval_episodes, -1), ic.eval_steps,
-                                                cfgs["wm"].obs, 20_000 + 100 * seed, render, temperature=ic.act_temperature)
+                                                cfgs["wm"].obs, 20_000 + 100 * seed, render)
         scores = [evaluate.episode_score(task, r, ic.eval_steps) for r in returns]
         if render:
             write_video(os.path.join(out_dir, f"{demo}_{view}_{method.replace(' ', '_')}_s{seed}.mp4"), video_demo, frames[0])

@@ -46,23 +46,12 @@ class ActorCriticConfig:
     return_norm_decay: float = 0.99  # EMA decay of the 5-95 percentile range of returns, Dreamer V3
     starts: int = 32  # imagination start states per update (ours: an update's time is linear in them; Dreamer V1: all 50x50 states)
     goal_mix: float = 0.5  # share of goals from the goal encoder, the rest D_body posterior states (ours; sample_goals)
-    reward: str = "distance"  # r^goal: 'distance' = -d(s, g) (Sec. 4), 'feature' = cosine of the goal decoder's features of s and g (ours)
     goal_near: float = 0.5  # share of goals from a later frame of the start state's own segment, reachable in the horizon (ours; sample_goals)
     bc: float = 1.0  # weight of hindsight behaviour cloning beside Eq. 4's actor loss (ours, a deviation, cloning.bc_loss; 0 = Eq. 4 alone)
     bc_final: float = 0.5  # share of bc_loss's goals from the episode's last frame, what the benchmark and GIIL-ZS give (ours)
     bc_steps: int = 10  # actor steps on bc_loss per update: the first with Eq. 4's loss, the rest on bc_loss alone, each with fresh goals (ours)
     bc_polish: int = 5000  # bc_loss steps of the actor alone on the frozen final world model and goal VAE, after the last update (ours; cloning.polish)
-    bc_polish_fresh: int = 0  # 1: those steps train a freshly initialised actor instead of the trained one (ours; cloning.polish; not kept)
     bc_polish_batches: int = 250  # D_body batches whose posterior states the polish computes once and cycles (ours; cloning.polish)
-    bc_polish_ema: float = 0.0  # decay of a moving average of the actor's weights over the polish steps, kept as the actor (ours; Polyak and Juditsky 1992; 0 = off, not kept)
-    uncertainty: float = 0.0  # lambda of the penalty r^goal - lambda u, u an ensemble's disagreement (ours, world_model.Disagreement; MOPO, Yu et al. 2020; 0 = off, not kept)
-    actor_input: str = "feat"  # what pi reads of s and g: 'feat' = [h, z] (Dreamer), 'obs' = their decoded observations (ours, Actor; not kept)
-    mixture: int = 1  # Gaussian components of pi before the tanh (ours, Actor; 1 = Dreamer's tanh-normal; more: not kept)
-    bc_awr: float = 0.0  # beta of advantage-weighted cloning (ours, cloning.advantage_weights; 0 = plain cloning; not kept)
-
-
-REWARDS = ("distance", "feature")  # the values of ActorCriticConfig.reward
-ACTOR_INPUTS = ("feat", "obs")  # the values of ActorCriticConfig.actor_input
 
 
 def goal_share(linear, goal):
@@ -85,89 +74,46 @@ def tanh_gaussian_log_prob(u, mean, std):
 
 
 class Actor(nn.Module):
-    """pi(a | s, g): a tanh-squashed Gaussian (Dreamer V1's tanh-normal) on [feat, goal]. Two options of ours, measured
-    and not kept (docs/experiments.md): cfg.mixture = K > 1, a tanh-squashed mixture of K Gaussians (a mixture density
-    network, Bishop 1994), so that a clone of D_body's mixed snapshots need not average their modes; it acts with the
-    mean of its most probable component, samples k ~ Cat(w) then u = mean_k + std_k eps (reparameterised within the
-    component). cfg.actor_input 'obs': pi reads the world model's decoded observation of s and of g instead of [h, z],
-    whose h holds a_{t-1} (the copycat shortcut of cloning from histories, Wen et al. 2020); the decoder's weights are
-    read detached, so gradients reach its input (phase 2's goal) and never its weights."""
+    """pi(a | s, g): a tanh-squashed Gaussian (Dreamer V1's tanh-normal) on [feat, goal]."""
 
-    def __init__(self, cfg, feat_dim, goal_dim, action_dim, decoder=None):
+    def __init__(self, cfg, feat_dim, goal_dim, action_dim):
         super().__init__()
         self.cfg, self.goal_dim, self.action_dim = cfg, goal_dim, action_dim
-        K = cfg.mixture
-        assert cfg.actor_input in ACTOR_INPUTS, cfg.actor_input
-        if cfg.actor_input == "obs":
-            assert isinstance(decoder, nn.Sequential) and goal_dim == feat_dim, "--ac-actor-input obs: the state decoder, goals that are states"
-            weights = lambda: {k: v.detach() for k, v in decoder.named_parameters()}
-            self.embed = lambda x: torch.func.functional_call(decoder, weights(), (x,))
-            feat_dim = goal_dim = decoder[-1].out_features
-        else:
-            self.embed = lambda x: x
-        self.net = mlp(feat_dim + goal_dim, cfg.units, 2 * action_dim * K + (K if K > 1 else 0), cfg.actor_layers)
+        self.net = mlp(feat_dim + goal_dim, cfg.units, 2 * action_dim, cfg.actor_layers)
 
     def goal_input(self, goal):
         """The goal's share of the first layer, W_g g + b: (N, G) or (1, G) -> (N, units). It is the same at every
         imagined step, so rollout computes it once (the first layer reads [feat, goal]: W [f; g] + b = W_f f + W_g g + b)."""
         assert goal.shape[-1] == self.goal_dim and goal.dim() == 2, goal.shape
-        return goal_share(self.net[0], self.embed(goal))
-
-    def components(self, feat, goal, goal_in=None):
-        """The Gaussians before the tanh: feat (N, F), goal (N, G) or (1, G) -> logits (N, K) of their weights (None for
-        one Gaussian), mean, std (N, K, A). goal_in: goal_input(goal) when already computed."""
-        cfg, K = self.cfg, self.cfg.mixture
-        assert feat.dim() == 2, feat.shape
-        goal_in = self.goal_input(goal) if goal_in is None else goal_in
-        out = self.net[1:](feat_share(self.net[0], self.embed(feat)) + goal_in)
-        logits, out = (out[:, :K], out[:, K:]) if K > 1 else (None, out)
-        mean, std = out.unflatten(-1, (K, 2 * self.action_dim)).chunk(2, -1)
-        mean = cfg.mean_scale * torch.tanh(mean / cfg.mean_scale)
-        std = (cfg.max_std - cfg.min_std) * torch.sigmoid(std + 2.0) + cfg.min_std  # Dreamer V3's bounded std
-        return logits, mean, std
-
-    def _choose(self, logits, mean, std, sample):
-        """One component's mean, std (N, A): drawn by its weight if `sample`, else the most probable; the only one for
-        a single Gaussian (no random numbers drawn)."""
-        if logits is None:
-            return mean[:, 0], std[:, 0]
-        k = torch.multinomial(logits.detach().softmax(-1), 1)[:, 0] if sample else logits.argmax(-1)
-        index = k[:, None, None].expand(-1, 1, self.action_dim)
-        return mean.gather(1, index)[:, 0], std.gather(1, index)[:, 0]
-
-    @staticmethod
-    def _log_prob(u, logits, mean, std):
-        """log pi(tanh(u)) of pre-tanh u (N, A) -> (N,): for a mixture, log sum_k w_k N(u; mean_k, std_k) minus the
-        tanh Jacobian."""
-        if logits is None:
-            return tanh_gaussian_log_prob(u, mean[:, 0], std[:, 0])
-        jacobian = (2 * (math.log(2) - u - F.softplus(-2 * u))).sum(-1)  # log(1 - tanh(u)^2) summed over actions
-        per_component = tanh_gaussian_log_prob(u[:, None], mean, std) + jacobian[:, None]  # (N, K): log N(u; mean_k, std_k)
-        return torch.logsumexp(logits.log_softmax(-1) + per_component, -1) - jacobian
+        return goal_share(self.net[0], goal)
 
     def distribution(self, feat, goal, goal_in=None):
-        """The Gaussian before the tanh (a mixture's most probable component): -> mean, std (N, A)."""
-        return self._choose(*self.components(feat, goal, goal_in), sample=False)
+        """The Gaussian before the tanh: feat (N, F), goal (N, G) or (1, G) -> mean, std (N, A). goal_in: goal_input(goal)
+        when already computed."""
+        cfg = self.cfg
+        assert feat.dim() == 2, feat.shape
+        goal_in = self.goal_input(goal) if goal_in is None else goal_in
+        mean, std = self.net[1:](feat_share(self.net[0], feat) + goal_in).chunk(2, -1)
+        mean = cfg.mean_scale * torch.tanh(mean / cfg.mean_scale)
+        std = (cfg.max_std - cfg.min_std) * torch.sigmoid(std + 2.0) + cfg.min_std  # Dreamer V3's bounded std
+        return mean, std
 
     def log_prob(self, feat, goal, u, goal_in=None):
         """log pi(tanh(u) | s, g) of pre-tanh actions u (N, A) -> (N,)."""
-        return self._log_prob(u, *self.components(feat, goal, goal_in))
+        return tanh_gaussian_log_prob(u, *self.distribution(feat, goal, goal_in))
 
     def forward(self, feat, goal, deterministic=False, goal_in=None):
         """feat (N, F), goal (N, G) -> action (N, A) in [-1, 1], log pi(action | s, g) (N,) (None if deterministic)."""
-        logits, mean, std = self.components(feat, goal, goal_in)
-        k_mean, k_std = self._choose(logits, mean, std, sample=not deterministic)
+        mean, std = self.distribution(feat, goal, goal_in)
         if deterministic:
-            return torch.tanh(k_mean), None
-        u = k_mean + k_std * torch.randn_like(k_mean)  # reparameterised: the actor loss differentiates through the sample
-        return torch.tanh(u), self._log_prob(u, logits, mean, std)
+            return torch.tanh(mean), None
+        u = mean + std * torch.randn_like(mean)  # reparameterised: the actor loss differentiates through the sample
+        return torch.tanh(u), tanh_gaussian_log_prob(u, mean, std)
 
-    def act(self, feat, goal, temperature=0.0):
-        """How pi acts in the real environment (ours): a = tanh(mean + temperature std eps), eps ~ N(0, I), of the one
-        Gaussian or of a component drawn by its weight. 0 is the tanh of the (most probable component's) mean, Dreamer's
-        evaluation, and draws no random numbers; 1 is a sample of pi. (N, F), (N, G) -> (N, A)."""
-        mean, std = self._choose(*self.components(feat, goal), sample=bool(temperature))
-        return torch.tanh(mean + temperature * std * torch.randn_like(mean) if temperature else mean)
+    def act(self, feat, goal):
+        """How pi acts in the real environment: the tanh of its mean, Dreamer's evaluation (no random numbers drawn).
+        (N, F), (N, G) -> (N, A)."""
+        return torch.tanh(self.distribution(feat, goal)[0])
 
 
 class Critic(nn.Module):
@@ -276,14 +222,6 @@ def goal_reward(dist_net, feat, goal):
     return -dist_net(feat[:, 1:], goal)
 
 
-def feature_reward(vae, feat, goal):
-    """r^goal(s_{k+1}, g) = cos(p_hat(s_{k+1}), p_hat(g)) on arrival (ours, --ac-reward feature; GenRL's reward is a
-    cosine in the same spirit): how much the video feature the goal decoder reads in s_{k+1} looks like the one it reads
-    in g, i.e. whether the imagined body does what the goal's video shows, which a temporal distance between two
-    observations cannot tell for a periodic gait (docs/experiments.md). feat (N, H + 1, F), goal (N, F) -> (N, H)."""
-    return (vae.decode(feat[:, 1:]) * vae.decode(goal)[:, None]).sum(-1)
-
-
 def lambda_return(reward, value, gamma, lambda_):
     """TD(lambda) targets: reward (N, H) with reward[:, k] = r_{k+1} (on arriving at s_{k+1}), value (N, H + 1)
     with value[:, k] = v_k -> G (N, H), G_k = r_{k+1} + gamma [(1 - lambda) v_{k+1} + lambda G_{k+1}], G_H = v_H."""
@@ -326,36 +264,17 @@ def critic_loss(critic, feat, goal, returns):  # Eq. 4: V_eta trained with TD(la
     return loss, {"critic_loss": loss.item(), "value": value.mean().item()}
 
 
-def policy_losses(world_model, dist_net, actor, critic, slow_critic, return_norm, start, goal, cfg, vae=None, other_reading=True, ensemble=None):  # Eq. 4
+def policy_losses(world_model, dist_net, actor, critic, slow_critic, return_norm, start, goal, cfg):  # Eq. 4
     """One update of L_MG (module docstring): start dict of (N, .), goal (N, F) -> actor loss, critic loss, metrics.
-    vae: the goal VAE, read by cfg.reward 'feature'. other_reading: also log the reward not in use (with vae); train.py
-    asks for it only on the updates it logs (it cost a third of the update). ensemble: the world_model.Disagreement whose u
-    cfg.uncertainty weighs as a penalty on the reward (ours). Call ema_update(slow_critic, critic, cfg.slow_critic_rate)
-    after the critic's optimiser step."""
-    if cfg.reward not in REWARDS or (cfg.reward == "feature" and vae is None):
-        raise ValueError(f"--ac-reward {cfg.reward!r}: pass 'distance' (Sec. 4) or 'feature' (with the goal VAE)")
-    if cfg.uncertainty and ensemble is None:
-        raise ValueError(f"--ac-uncertainty {cfg.uncertainty}: the penalty needs the run's Disagreement ensemble")
-    frozen = [m for m in (vae, ensemble) if m is not None]
-    with freeze(world_model, dist_net, slow_critic, *frozen):
-        feat, action, log_prob = rollout(world_model, actor, start, goal, cfg.horizon)
-        rewards = {"distance": lambda: goal_reward(dist_net, feat, goal), "feature": lambda: feature_reward(vae, feat, goal)}
-        reward = rewards[cfg.reward]()  # (N, H)
-        with torch.no_grad():  # both readings of the same imagined steps are logged, whichever one is the reward
-            readings = {"reward_" + cfg.reward: reward.mean().item()}
-            if vae is not None and other_reading:
-                other = "feature" if cfg.reward == "distance" else "distance"
-                readings["reward_" + other] = rewards[other]().mean().item()
-        penalised = reward
-        if cfg.uncertainty:  # r_{k+1} - lambda u(s_k, a_k): the step into s_{k+1} is what the ensemble doubts
-            u = ensemble.disagreement(feat[:, :-1], action)  # (N, H), differentiable in the actions
-            readings["uncertainty"] = u.mean().item()
-            penalised = reward - cfg.uncertainty * u
+    Call ema_update(slow_critic, critic, cfg.slow_critic_rate) after the critic's optimiser step."""
+    with freeze(world_model, dist_net, slow_critic):
+        feat, _, log_prob = rollout(world_model, actor, start, goal, cfg.horizon)
+        reward = goal_reward(dist_net, feat, goal)  # (N, H)
         value = slow_critic(feat, goal)  # (N, H + 1): differentiable in feat, so -G reaches the actions
-        returns = lambda_return(penalised, value, cfg.gamma, cfg.lambda_)  # (N, H)
+        returns = lambda_return(reward, value, cfg.gamma, cfg.lambda_)  # (N, H)
     a_loss, a_metrics = actor_loss(returns, log_prob, return_norm, cfg.entropy)
     c_loss, c_metrics = critic_loss(critic, feat, goal, returns)
-    return a_loss, c_loss, {**a_metrics, **c_metrics, "reward": reward.mean().item(), **readings}
+    return a_loss, c_loss, {**a_metrics, **c_metrics, "reward": reward.mean().item()}
 
 
 def make_critics(cfg, feat_dim, goal_dim):

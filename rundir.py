@@ -39,8 +39,8 @@ from presets import DATA
 # rates lie in (0, 1), the fields of POSITIVE above 0, any other float is >= 0.
 RANGES = {"seed": (0, None), "seed_steps": (0, None), "policy_start": (0, None),
           "holdout_every": (2, None),  # 1 would hold out every episode
-          "finetune_policy": (0, 1), "cover_edges": (0, 1), "video": (0, 1), "encoder_goals": (0, 1), "body_ratio": (0, 1),
-          "goal_near": (0, 1), "bc_final": (0, 1), "bc_polish": (0, None), "bc_polish_fresh": (0, 1),
+          "finetune_policy": (0, 1), "video": (0, 1), "encoder_goals": (0, 1), "body_ratio": (0, 1),
+          "goal_near": (0, 1), "bc_final": (0, 1), "bc_polish": (0, None),
           "gamma": (0, 1), "lambda_": (0, 1), "tau": (0, 1), "goal_mix": (0, 1), "slow_critic_rate": (0, 1), "return_norm_decay": (0, 1)}
 POSITIVE = ("grad_clip", "min_std", "max_std", "mean_scale", "kappa", "init_alpha", "reward_sum")
 

@@ -59,14 +59,11 @@ def load_results(run_dir):
 def result_config(ic, method, oc=None):
     """The ImitateConfig fields a result depends on: evaluation for the zero-shot columns, finetuning too for GIIL-FT,
     the OnlineConfig oc's too for GIIL-online."""
-    fields = dataclasses.asdict(ic)
-    if not fields["act_temperature"]:  # rows made before the field acted on the mean, as 0 does: they still count
-        del fields["act_temperature"]
-    evaluation = ("eval_episodes", "eval_steps", "act_temperature")
+    fields, evaluation = dataclasses.asdict(ic), ("eval_episodes", "eval_steps")
     if method == ONLINE:
-        return {**{k: fields[k] for k in evaluation if k in fields}, **{k: v for k, v in dataclasses.asdict(oc).items() if k != "seeds"}}
+        return {**{k: fields[k] for k in evaluation}, **{k: v for k, v in dataclasses.asdict(oc).items() if k != "seeds"}}
     keep = evaluation if method.startswith("GIIL-ZS") else tuple(k for k in fields if k not in ("seeds", "video"))
-    return {k: fields[k] for k in keep if k in fields}
+    return {k: fields[k] for k in keep}
 
 
 def finished(rows, demo, view, returns, configs):

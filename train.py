@@ -32,23 +32,22 @@ import envs
 import evaluate
 import policy
 import rundir
-import world_model
 from checkpoint import COMPONENTS, TrainConfig, default_run_dir, load_run
 from presets import PRESETS
 from video_encoder import check_same_encoder, load_encoder
 
 
 # fields that may differ when a run is resumed: they do not change what the models are
-RESUMABLE = {"steps", "log_every", "checkpoint_every", "eval_episodes", "eval_steps", "act_temperature", "eval_seed", "data", "threads",
-             "bc_polish", "bc_polish_fresh", "bc_polish_batches"}  # the polish starts from the training actor, kept apart in the checkpoint
-LR_FLAGS = {"world_model": ("wm", "lr"), "ensemble": ("wm", "lr"), "goal_vae": ("goal", "lr"), "dist_net": ("dist", "lr"), "actor": ("ac", "actor_lr"), "critic": ("ac", "critic_lr")}
+RESUMABLE = {"steps", "log_every", "checkpoint_every", "eval_episodes", "eval_steps", "eval_seed", "data", "threads",
+             "bc_polish", "bc_polish_batches"}  # the polish starts from the training actor, kept apart in the checkpoint
+LR_FLAGS = {"world_model": ("wm", "lr"), "goal_vae": ("goal", "lr"), "dist_net": ("dist", "lr"), "actor": ("ac", "actor_lr"), "critic": ("ac", "critic_lr")}
 
 
 def add_config_flags(parser):
     """One flag per field of each component's config (default None: 'not given', so presets apply)."""
     for name, (cls, prefix) in COMPONENTS.items():
         for field in dataclasses.fields(cls):
-            choices = {("train", "preset"): tuple(PRESETS["train"]), ("ac", "reward"): policy.REWARDS, ("ac", "actor_input"): policy.ACTOR_INPUTS}.get((name, field.name))
+            choices = tuple(PRESETS["train"]) if (name, field.name) == ("train", "preset") else None
             parser.add_argument("--" + prefix + field.name.replace("_", "-"), dest=f"{name}.{field.name}", type=type(field.default),
                                 default=None, choices=choices, metavar=None if choices else type(field.default).__name__.upper(),
                                 help=f"{cls.__name__}.{field.name} (default {field.default!r}, or the preset's)")
@@ -80,7 +79,7 @@ def report_goal_reaching(run_dir, models, cfgs, device):
     tc = cfgs["train"]
     scores = evaluate.goal_reaching(models, cfgs, tc.eval_episodes, tc.eval_steps, device=device)
     print(f"goal reaching, {tc.env}: own side-view demos as goals (g = q(s | p_T)), {tc.eval_episodes} episodes per demo, "
-          f"{tc.eval_steps} steps{f', actions at temperature {tc.act_temperature:g}' if tc.act_temperature else ''}, normalised score (Eq. 8) mean +- s.e.")
+          f"{tc.eval_steps} steps, normalised score (Eq. 8) mean +- s.e.")
     print("\n".join(evaluate.summary(scores)))
     print("wrote", evaluate.write_goal_reaching(run_dir, scores))
     return scores
@@ -126,7 +125,7 @@ def prepare_data(cfgs):
     episodes = collect.load_folder(folder, (wc.obs, "action", "is_first", "p"), encoder=encoder.name)
     held_out = episodes[:: tc.holdout_every]
     train_eps = [e for k, e in enumerate(episodes) if k % tc.holdout_every]
-    data = collect.Segments(train_eps, (wc.obs, "action", "is_first", "p"), wc.seq_len, bool(tc.cover_edges))
+    data = collect.Segments(train_eps, (wc.obs, "action", "is_first", "p"), wc.seq_len)
     obs_shape = episodes[0][wc.obs].shape[1] if wc.obs == "state" else (64, 64, 3)
     print(f"D_body {folder}: {len(train_eps)} training + {len(held_out)} held-out episodes, {sum(data.lengths)} steps, features {encoder.name}")
     return encoder, data, held_out, (obs_shape, episodes[0]["action"].shape[1], episodes[0]["p"].shape[1])
@@ -137,8 +136,6 @@ def make_optimizers(models, cfgs):
     wc, ac, gc, dc = cfgs["wm"], cfgs["ac"], cfgs["goal"], cfgs["dist"]
     lrs = {"world_model": wc.lr, "goal_vae": gc.lr, "dist_net": dc.lr, "actor": ac.actor_lr, "critic": ac.critic_lr}
     clip = {"world_model": wc.grad_clip, "goal_vae": gc.grad_clip, "dist_net": dc.grad_clip, "actor": ac.grad_clip, "critic": ac.grad_clip}
-    if "ensemble" in models:  # trained beside the world model, at its rate
-        lrs["ensemble"], clip["ensemble"] = wc.lr, wc.grad_clip
     return {name: torch.optim.Adam(models[name].parameters(), lr=lr) for name, lr in lrs.items()}, clip
 
 
@@ -150,8 +147,7 @@ def resume_from(ckpt_path, resume, cfgs, models, optims, encoder, device, rng):
     if not resume:
         raise ValueError(f"{ckpt_path} exists: pass --resume to continue that run, or another --seed for a new one")
     ckpt, config = rundir.load_checkpoint(ckpt_path, device), {n: dataclasses.asdict(c) for n, c in cfgs.items()}
-    # a field the checkpoint lacks came after it was written: the run had its dataclass default (new flags default to the old behaviour)
-    saved = {n: {**dataclasses.asdict(COMPONENTS[n][0]()), **ckpt["config"][n]} for n in ckpt["config"]}
+    saved = {n: dataclasses.asdict(c) for n, c in checkpoint.stored_configs(ckpt, ckpt_path).items()}  # a deleted switch left on: an error
     changed = [f"{n}.{k}" for n in config for k in config[n] if k not in RESUMABLE and saved[n].get(k) != config[n][k]]
     if changed:
         raise ValueError(f"{ckpt_path} was trained with other {', '.join(changed)}: pass the same flags to resume, or start a new run")
@@ -176,11 +172,11 @@ def resume_from(ckpt_path, resume, cfgs, models, optims, encoder, device, rng):
 
 def save(ckpt_path, cfgs, step, rng, encoder, shapes, models, optims, **actors):
     """runs/<name>/checkpoint.pt: what checkpoint.load_run reads and what --resume needs (optimisers, RNGs); `actors`:
-    actor state_dicts kept beside the models (None: not kept). Returns the update it holds."""
+    actor state_dicts kept beside the models (actor_unpolished). Returns the update it holds."""
     state = {"config": {n: dataclasses.asdict(c) for n, c in cfgs.items()}, "step": step, "rng": rng.bit_generator.state,
              "torch_rng": torch.get_rng_state(), "encoder": encoder.name, "obs_shape": shapes[0], "action_dim": shapes[1], "p_dim": shapes[2],
              "models": {k: m.state_dict() for k, m in models.items()}, "optims": {k: o.state_dict() for k, o in optims.items()},
-             **{k: v for k, v in actors.items() if v is not None}}
+             **actors}
     rundir.atomic_write(ckpt_path, lambda f: torch.save(state, f))
     return step
 
@@ -245,10 +241,6 @@ def pretrain(cfgs, run_dir, resume):
         loss, m3 = vae.loss(batch["p"], post)
         update("goal_vae", loss, "Eq. 3 goal-VAE loss")
         post_feat = wm.feat(post).detach()  # (B, T, F)
-        if "ensemble" in models:  # world_model.Disagreement, for --ac-uncertainty
-            loss, m = models["ensemble"].loss(post_feat, batch["action"], world_model.Disagreement.target(wm, batch[wc.obs]), batch["is_first"])
-            update("ensemble", loss, "the ensemble's loss")
-            metrics.update(m)
         # Eq. 7: the temporal distance on pairs of posterior states, and of states and encoder goals (ours)
         with torch.no_grad():  # the goal encoder's g of every frame (B, T, F), what GIIL-ZS feeds the policy, and of the last (B, F)
             goal_feat, final_goal = vae.goal(batch["p"]), vae.goal(batch["p_last"])
@@ -260,10 +252,9 @@ def pretrain(cfgs, run_dir, resume):
         if step >= tc.policy_start:
             start, index = policy.sample_starts(post, ac.starts)
             goals = policy.sample_goals(post_feat, goal_feat, index, batch["is_first"], ac.goal_mix, ac.goal_near)
-            a_loss, c_loss, m4 = policy.policy_losses(wm, dist_net, actor, critic, slow_critic, models["return_norm"], start, goals, ac, vae,
-                                                      other_reading=logged, ensemble=models.get("ensemble"))
+            a_loss, c_loss, m4 = policy.policy_losses(wm, dist_net, actor, critic, slow_critic, models["return_norm"], start, goals, ac)
             # ours, beside Eq. 4: hindsight behaviour cloning of D_body's actions (cloning.py), in ac.bc_steps actor steps
-            clone = lambda: cloning.bc_loss(actor, post_feat, goal_feat, batch["action"], final_goal, ac.bc_final, cloning.weigh(models, ac))
+            clone = lambda: cloning.bc_loss(actor, post_feat, goal_feat, batch["action"], final_goal, ac.bc_final)
             bc, m_bc = clone() if ac.bc else (0.0, {})
             if logged and ac.bc:  # Eq. 4's share of the actor's step against the cloning's (evaluate.gradient_share)
                 m4.update(policy.gradient_norms(actor, eq4=a_loss, bc=ac.bc * bc))
@@ -284,7 +275,8 @@ def pretrain(cfgs, run_dir, resume):
             saved = keep(step + 1)
     if ac.bc and ac.bc_polish:  # ours: cloning on the final world model; the checkpoint keeps the unpolished actor to resume from
         unpolished = copy.deepcopy(actor.state_dict())
-        keep(tc.steps, actor_unpolished=unpolished, actor_polish_last=cloning.polish(models, cfgs, data, device))
+        cloning.polish(models, cfgs, data, device)
+        keep(tc.steps, actor_unpolished=unpolished)
     final_report(run_dir, models, cfgs, held_out, device)
     print(f"wrote {ckpt_path}, {log_path}")
     return run_dir
@@ -315,7 +307,7 @@ def main():
         torch.set_num_threads(tc.threads)
         rundir.fast_matmul()  # oneDNN where it is faster and still fp32 (rundir.py)
         run_cfgs["train"] = dataclasses.replace(run_cfgs["train"], eval_episodes=tc.eval_episodes, eval_steps=tc.eval_steps,
-                                                act_temperature=tc.act_temperature, eval_seed=tc.eval_seed, data=tc.data)
+                                                eval_seed=tc.eval_seed, data=tc.data)
         report_goal_reaching(run_dir, models, run_cfgs, device)
     else:
         rundir.check_gpu(tc.preset, args.allow_cpu)

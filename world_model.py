@@ -29,8 +29,6 @@ import torch
 import torch.nn as nn
 import torch.nn.functional as F
 
-from sac import EnsembleLinear
-
 
 @dataclass
 class WorldModelConfig:
@@ -295,58 +293,3 @@ def random_batch(obs, obs_shape, action_dim, batch, seq_len, p_dim=64, seed=0):
     action[:, 0] = 0
     p = F.normalize(torch.randn(B, T, p_dim, generator=g), dim=-1)
     return {**data, "action": action, "reward": torch.zeros(B, T), "is_first": is_first, "p": p, "episode": torch.arange(B)}
-
-
-class Disagreement(nn.Module):
-    """The world model's uncertainty on an imagined step (ours, --ac-uncertainty; Plan2Explore's ensemble, Sekar et al.
-    2020, as MOPO's penalty, Yu et al. 2020): K MLPs, each predicting the next observation's target (the decoder's,
-    symlog(o_{t+1}), for states; the encoder's e_{t+1} for pixels) from [feat_t, a_t], trained on D_body's posterior
-    transitions. Where the data went they agree; off its support, where Eq. 4 alone learned actions whose outcome the
-    world model predicts wrongly (docs/experiments.md), they need not. u = the variance across members, averaged over
-    the target's dimensions, divided by its running mean on D_body's transitions (`scale`), so that lambda counts in
-    units of what the data shows."""
-
-    members = 5  # Plan2Explore's ensemble size
-    decay = 0.99  # EMA decay of scale
-
-    def __init__(self, feat_dim, action_dim, target_dim, units=128):
-        super().__init__()
-        K = self.members
-        self.net = nn.Sequential(EnsembleLinear(K, feat_dim + action_dim, units), nn.SiLU(), EnsembleLinear(K, units, units), nn.SiLU(),
-                                 EnsembleLinear(K, units, target_dim))
-        self.register_buffer("scale", torch.zeros(()))
-
-    @classmethod
-    def of(cls, wm):
-        """The ensemble for a world model: its feat and action sizes, and the target's."""
-        return cls(wm.feat_dim, wm.action_dim, wm.obs_shape[0] if wm.cfg.obs == "state" else 32 * wm.cfg.cnn_depth)
-
-    @staticmethod
-    def target(wm, obs):
-        """What the members predict of o_t: symlog(o_t) for states, the encoder's e_t for pixels: (B, T, .) -> (B, T, D)."""
-        with torch.no_grad():
-            return wm._target(obs) if wm.cfg.obs == "state" else wm.encode(obs)
-
-    def forward(self, feat, action):
-        """feat (..., F), action (..., A) -> each member's prediction (K, ..., target_dim)."""
-        x = torch.cat([feat, action], -1)
-        shape = x.shape[:-1]
-        x = x.reshape(1, -1, x.shape[-1]).expand(self.members, -1, -1)
-        return self.net(x).reshape(self.members, *shape, -1)
-
-    def disagreement(self, feat, action):
-        """u of each step: (..., F), (..., A) -> (...), in units of scale (1 before the first loss)."""
-        u = self(feat, action).var(0).mean(-1)
-        return u / self.scale if self.scale > 0 else u
-
-    def loss(self, post_feat, action, target, is_first):
-        """Squared error of every member on D_body's transitions s_t, a_t -> target_{t+1} (none across an episode
-        start): post_feat (B, T, F), action (B, T, A) = a_{t-1}, target (B, T, D), is_first (B, T); updates scale."""
-        keep = ~is_first[:, 1:]  # (B, T - 1)
-        pred = self(post_feat[:, :-1].detach(), action[:, 1:])  # (K, B, T - 1, D)
-        err = (pred - target[:, 1:].detach()).pow(2).sum(-1)  # (K, B, T - 1)
-        loss = err[:, keep].mean()
-        with torch.no_grad():
-            u = pred.var(0).mean(-1)[keep].mean()
-            self.scale.copy_(u if self.scale == 0 else self.scale.lerp(u, 1 - self.decay))
-        return loss, {"ensemble_loss": loss.item(), "disagreement_data": u.item()}

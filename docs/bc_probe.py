@@ -4,7 +4,7 @@ by the goal-reaching benchmark (evaluate.goal_reaching, --episodes per demo goal
 allow: the mean normalised score of D_body's expert episodes per task, and for each own side-view demo's last feature
 p_T the share of its 200 nearest D_body frames (cosine of p) that come from the same task. Run from the repository root:
 
-    python docs/bc_probe.py runs/walker_bc1_s0 --steps 20000 [--batches 1000] [--final-share 0.5] [--units 256 --layers 2] [--mixture K] [--actor-input obs]
+    python docs/bc_probe.py runs/walker_bc1_s0 --steps 20000 [--batches 1000] [--final-share 0.5] [--units 256 --layers 2]
         [--keep-actor] [--data DIR] [--episodes 3] [--seed N]
 """
 import argparse
@@ -21,6 +21,7 @@ import cloning  # noqa: E402
 import collect  # noqa: E402
 import envs  # noqa: E402
 import evaluate  # noqa: E402
+import policy  # noqa: E402
 import train  # noqa: E402
 
 
@@ -43,8 +44,6 @@ if __name__ == "__main__":
     parser.add_argument("--final-share", type=float, default=0.5, help="bc_loss's share of goals from the episode's last frame")
     parser.add_argument("--units", type=int, default=None)
     parser.add_argument("--layers", type=int, default=None)
-    parser.add_argument("--actor-input", choices=("feat", "obs"), default=None, help="what the fresh actor reads (policy.Actor; default: the run's)")
-    parser.add_argument("--mixture", type=int, default=None, help="Gaussian components of the fresh actor (policy.Actor; default: the run's)")
     parser.add_argument("--data", default=None, help="D_body and demos from this folder instead of the run's (same world model)")
     parser.add_argument("--episodes", type=int, default=1, help="benchmark episodes per demo goal (the benchmark's own: 3)")
     parser.add_argument("--seed", type=int, default=None, help="the cloning's seeds (fresh actor, batches; default: the run's)")
@@ -58,7 +57,10 @@ if __name__ == "__main__":
     what_the_data_allow(cfgs)
     _, data, _, _ = train.prepare_data(cfgs)
     ac = dataclasses.replace(cfgs["ac"], units=args.units or cfgs["ac"].units, actor_layers=args.layers or cfgs["ac"].actor_layers,
-                             mixture=args.mixture or cfgs["ac"].mixture, actor_input=args.actor_input or cfgs["ac"].actor_input,
-                             bc_polish=args.steps, bc_polish_fresh=int(not args.keep_actor), bc_polish_batches=args.batches, bc_final=args.final_share)
+                             bc_polish=args.steps, bc_polish_batches=args.batches, bc_final=args.final_share)
+    if not args.keep_actor:  # a fresh actor, seeded from the cloning's seed
+        with torch.random.fork_rng(devices=[]):
+            torch.manual_seed(cfgs["train"].seed + 1)
+            models["actor"] = policy.Actor(ac, models["world_model"].feat_dim, models["world_model"].feat_dim, models["world_model"].action_dim)
     cloning.polish(models, {**cfgs, "ac": ac}, data, "cpu")  # the cloning steps, as train.py's polish runs them
     print("\n".join(evaluate.summary(evaluate.goal_reaching(models, cfgs, args.episodes, 500))))

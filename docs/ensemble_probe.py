@@ -24,6 +24,7 @@ import checkpoint  # noqa: E402
 import cloning  # noqa: E402
 import envs  # noqa: E402
 import evaluate  # noqa: E402
+import policy  # noqa: E402
 import rundir  # noqa: E402
 import train  # noqa: E402
 
@@ -35,8 +36,8 @@ class Ensemble(torch.nn.Module):
         super().__init__()
         self.actors = torch.nn.ModuleList(actors)
 
-    def act(self, feat, goal, temperature=0.0):
-        return torch.stack([actor.act(feat, goal, temperature) for actor in self.actors]).mean(0)
+    def act(self, feat, goal):
+        return torch.stack([actor.act(feat, goal) for actor in self.actors]).mean(0)
 
 
 if __name__ == "__main__":
@@ -57,9 +58,14 @@ if __name__ == "__main__":
     trained = copy.deepcopy(models["actor"])
     actors = [trained] if args.keep_actor else []
     for k in range(len(actors), args.clones):
-        models["actor"] = copy.deepcopy(trained)
         clone_cfgs = {**cfgs, "train": dataclasses.replace(cfgs["train"], seed=100 * args.seed + k),
-                      "ac": dataclasses.replace(cfgs["ac"], bc_polish=args.steps, bc_polish_fresh=int(not args.keep_actor), bc_polish_batches=args.batches, bc_polish_ema=0.0)}
+                      "ac": dataclasses.replace(cfgs["ac"], bc_polish=args.steps, bc_polish_batches=args.batches)}
+        models["actor"] = copy.deepcopy(trained)
+        if not args.keep_actor:  # a fresh actor, seeded from clone k's cloning seed
+            with torch.random.fork_rng(devices=[]):
+                torch.manual_seed(clone_cfgs["train"].seed + 1)
+                feat_dim = models["world_model"].feat_dim
+                models["actor"] = policy.Actor(cfgs["ac"], feat_dim, feat_dim, models["world_model"].action_dim)
         cloning.polish(models, clone_cfgs, data, "cpu")
         actors.append(copy.deepcopy(models["actor"]))
     arms = [("clone 0", actors[0])] + ([(f"{args.clones} clones", Ensemble(actors))] if args.clones > 1 else [])

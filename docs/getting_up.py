@@ -5,7 +5,7 @@ is "up at the end" when its mean posture over its last 100 steps is >= 0.8. Per 
 steps, the share of episodes up at the end, the mean score of those up and of those down, and the mean of all.
 Four readings:
 * the agent: the benchmark's own episodes (same goals, seeds, threads and matmul route as `python train.py --evaluate`,
-  so the last column is the benchmark's number to the digit; --act-temperature as its flag);
+  so the last column is the benchmark's number to the digit);
 * the D_body task episodes it was trained on (<data>/<body>, from their stored states; --data: another folder than
   the run's), with --data-too, and when those that end up are on the ground (landing);
 * with --other-goals, each task also towards the goals of the other tasks' demos (does the goal decide the task,
@@ -52,8 +52,7 @@ def agent_row(name, models, cfgs, body, task, p_goals, repeat=1):
     posture = []  # (steps, episodes)
     torso = lambda env: (env.physics.named.data.xpos["torso", "z"], env.physics.named.data.xmat["torso", "zz"])
     record = lambda env_list: posture.append([envs.posture(body, *torso(env)) for env in env_list])
-    returns, _ = evaluate.run_episodes(env_list, models, goals, envs.EPISODE_STEPS, cfgs["wm"].obs, cfgs["train"].eval_seed, on_step=record,
-                                       temperature=cfgs["train"].act_temperature)
+    returns, _ = evaluate.run_episodes(env_list, models, goals, envs.EPISODE_STEPS, cfgs["wm"].obs, cfgs["train"].eval_seed, on_step=record)
     return row(name, np.array(posture), np.array([evaluate.episode_score(task, r, envs.EPISODE_STEPS) for r in returns]))
 
 
@@ -118,12 +117,10 @@ def main():
     parser.add_argument("--data-goals", action="store_true", help="also stand towards goals of D_body episodes that ended up / down")
     parser.add_argument("--other-goals", action="store_true", help="also each task towards the other tasks' demo goals")
     parser.add_argument("--data", help="the data folder of D_body and the demos (default: the run's)")
-    parser.add_argument("--act-temperature", type=float, default=0.0, help="the policy's actions, as train.py's flag (0: the mean)")
     args = parser.parse_args()
     torch.set_num_threads(checkpoint.TrainConfig.threads)  # the benchmark's threads and matmul route (train.py --evaluate):
     rundir.fast_matmul()  # other float sums change a stickman's episodes after a few steps
     cfgs, models, _ = checkpoint.load_run(args.run)
-    cfgs["train"].act_temperature = args.act_temperature
     cfgs["train"].data = args.data or cfgs["train"].data
     body = cfgs["train"].env
     goals = demo_goals(cfgs, body)

@@ -38,28 +38,3 @@ def test_bc_loss_is_tanh_gaussian_nll_of_dataset_actions():
     loss, _ = C.bc_loss(actor, feat, goal, action, final_goal, final_share=1.0)
     logp_final = lambda t: TransformedDistribution(Normal(*actor.distribution(feat[:, t], final_goal)), [TanhTransform()]).log_prob(action[:, t + 1]).sum(-1)
     assert loss.item() == pytest.approx(-(logp_final(0).sum() + logp_final(1).sum()).item() / (2 * B), rel=1e-4)
-
-
-def test_advantage_weights_favour_actions_that_bring_the_goal_nearer():
-    """--ac-bc-awr: with V = 0 the advantage is -d(s_{t+1}, g), so of two actions from the same state the one whose next
-    state is nearer the goal gets the larger weight; weights have mean 1, large ones are clipped at AWR_MAX (before the
-    mean is taken), and a weigh of ones gives plain bc_loss exactly."""
-    class Near(torch.nn.Module):  # d(s, g) = |s - g|, the distance a perfect Eq. 6 would learn in this toy
-        def forward(self, a, b):
-            return (a - b).norm(dim=-1)
-    critic = lambda feat, goal: torch.zeros(feat.shape[:-1])
-    feat, goal = torch.zeros(4, 2), torch.tensor([[1.0, 0.0]]).expand(4, -1)
-    next_feat = torch.tensor([[0.9, 0.0], [0.5, 0.0], [0.0, 0.0], [-0.5, 0.0]])  # from nearest the goal to furthest
-    w = C.advantage_weights(critic, Near(), feat, next_feat, goal, 0.99, beta=1.0)
-    assert torch.all(w[:-1] > w[1:]) and w.mean().item() == pytest.approx(1.0)
-    assert torch.allclose(C.advantage_weights(critic, Near(), feat, next_feat, goal, 0.99, beta=0.0), torch.ones(4))
-    clipped = C.advantage_weights(critic, Near(), feat, next_feat, goal, 0.99, beta=100.0)
-    assert clipped[0] == clipped[1] and clipped[0].item() == pytest.approx(2.0, rel=1e-3)  # 20, 20, ~0, ~0 over their mean 10
-    torch.manual_seed(0)
-    actor = P.Actor(P.ActorCriticConfig(**presets.PRESETS["ac"]["smoke"]), 6, 6, 3)
-    post, goals, action = torch.randn(5, 4, 6), torch.randn(5, 4, 6), torch.rand(5, 4, 3) * 1.6 - 0.8
-    torch.manual_seed(1)
-    plain, _ = C.bc_loss(actor, post, goals, action)
-    torch.manual_seed(1)
-    ones, m = C.bc_loss(actor, post, goals, action, weigh=lambda s, s_next, g: torch.ones(len(s)))
-    assert ones.item() == pytest.approx(plain.item(), rel=1e-6) and m["bc_weight_max"] == 1.0

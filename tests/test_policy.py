@@ -46,66 +46,6 @@ def test_tanh_gaussian_log_prob_matches_torch_distributions():
     assert torch.allclose(log_prob, expected, atol=1e-6)
 
 
-def test_mixture_log_prob_matches_torch_distributions_and_forward_samples_it():
-    """cfg.mixture = K > 1: log pi is the tanh-squashed mixture's density (torch.distributions' MixtureSameFamily),
-    forward's log_prob is log_prob of its own sample, deterministic is the tanh of the most probable component's mean."""
-    from torch.distributions import Categorical, Independent, MixtureSameFamily
-
-    torch.manual_seed(0)
-    cfg = P.ActorCriticConfig(**presets.PRESETS["ac"]["smoke"], mixture=3)
-    actor = P.Actor(cfg, 6, 3, 2).double()
-    feat, goal = torch.randn(50, 6, dtype=torch.float64), torch.randn(50, 3, dtype=torch.float64)
-    logits, mean, std = actor.components(feat, goal)
-    assert logits.shape == (50, 3) and mean.shape == std.shape == (50, 3, 2)
-    mixture = MixtureSameFamily(Categorical(logits=logits), Independent(Normal(mean, std), 1))
-    action, log_prob = actor(feat, goal)
-    u = torch.atanh(action)
-    jacobian = torch.log(1 - action**2).sum(-1)
-    assert torch.allclose(actor.log_prob(feat, goal, u), mixture.log_prob(u) - jacobian, atol=1e-6)
-    assert torch.allclose(log_prob, mixture.log_prob(u) - jacobian, atol=1e-6)
-    mode = mean[torch.arange(50), logits.argmax(-1)]
-    assert torch.equal(actor(feat, goal, deterministic=True)[0], torch.tanh(mode))
-    assert torch.equal(actor.act(feat, goal, 0.0), torch.tanh(mode))
-
-
-def test_a_mixture_clone_picks_a_mode_where_one_gaussian_averages_two():
-    """The reason for cfg.mixture: cloned on data whose action is +0.8 or -0.8 half the time each in the same state,
-    one Gaussian's mean lands between the two (near 0); two components put their most probable mean on one of them."""
-    torch.manual_seed(0)
-    feat, goal = torch.zeros(256, 4), torch.zeros(256, 2)
-    a = torch.where(torch.rand(256, 1) < 0.5, 0.8, -0.8)  # (256, 1): one action dimension
-    modes = {}
-    for K in (1, 2):
-        actor = P.Actor(P.ActorCriticConfig(units=32, actor_layers=2, mixture=K), 4, 2, 1)
-        opt = torch.optim.Adam(actor.parameters(), lr=3e-3)
-        for _ in range(600):
-            loss = -actor.log_prob(feat, goal, torch.atanh(a)).mean()
-            opt.zero_grad()
-            loss.backward()
-            opt.step()
-        modes[K] = actor.act(feat[:1], goal[:1]).item()
-    assert abs(modes[1]) < 0.2, modes
-    assert abs(abs(modes[2]) - 0.8) < 0.1, modes
-
-
-def test_an_actor_on_decoded_observations_reads_them_alone_and_leaves_the_decoder_untouched():
-    """cfg.actor_input 'obs': pi is the MLP on [decoder(s), decoder(g)] (the action depends on s only through what the
-    decoder reads of it); its loss gives the decoder's weights no gradient and its input (the goal, in phase 2) one."""
-    torch.manual_seed(0)
-    wm = W.WorldModel(W.WorldModelConfig(**presets.PRESETS["wm"]["smoke"]), 5, 2)
-    cfg = P.ActorCriticConfig(**presets.PRESETS["ac"]["smoke"], actor_input="obs")
-    actor = P.Actor(cfg, wm.feat_dim, wm.feat_dim, 2, wm.decoder)
-    assert actor.net[0].in_features == 2 * 5
-    feat, goal = torch.randn(7, wm.feat_dim), torch.randn(7, wm.feat_dim, requires_grad=True)
-    mean, std = actor.distribution(feat, goal)
-    raw_mean, _ = actor.net(torch.cat([wm.decoder(feat), wm.decoder(goal)], -1)).chunk(2, -1)
-    assert torch.allclose(mean, cfg.mean_scale * torch.tanh(raw_mean / cfg.mean_scale), atol=1e-6)
-    wm.zero_grad(set_to_none=True)
-    (mean.sum() + std.sum()).backward()
-    assert all(p.grad is None for p in wm.decoder.parameters())
-    assert goal.grad.abs().sum() > 0
-
-
 def make_agents(goal_dim=None):
     cfg = P.ActorCriticConfig(**presets.PRESETS["ac"]["smoke"])
     world_model = W.WorldModel(W.WorldModelConfig(**presets.PRESETS["wm"]["smoke"]), 5, 2)
@@ -216,25 +156,16 @@ def test_actor_with_its_goal_input_computed_once_equals_the_concatenated_layer()
     assert (other - mean).abs().max() > 1e-3  # the action depends on the goal
 
 
-def test_act_scales_the_noise_of_pi_by_the_temperature_and_is_the_mean_at_zero():
-    """a = tanh(mean + T std eps): at T = 0 the deterministic action, drawing no random numbers; at T > 0 the noise
-    atanh(a) - mean is T std times the seeded eps (T = 1: forward's sample)."""
+def test_act_is_the_tanh_of_the_mean_and_draws_no_random_numbers():
+    """How pi acts in the real environment: forward's deterministic action, the RNG untouched."""
     torch.manual_seed(0)
     actor = P.Actor(P.ActorCriticConfig(**presets.PRESETS["ac"]["smoke"]), 6, 4, 3)
     feat, goal = torch.randn(50, 6), torch.randn(50, 4)
     with torch.no_grad():
-        mean, std = actor.distribution(feat, goal)
         state = torch.get_rng_state()
-        assert torch.equal(actor.act(feat, goal, 0.0), actor(feat, goal, deterministic=True)[0])
+        assert torch.equal(actor.act(feat, goal), actor(feat, goal, deterministic=True)[0])
+        assert torch.equal(actor.act(feat, goal), torch.tanh(actor.distribution(feat, goal)[0]))
         assert torch.equal(torch.get_rng_state(), state)
-        for temperature in (0.5, 1.0):
-            torch.manual_seed(1)
-            action = actor.act(feat, goal, temperature)
-            torch.manual_seed(1)
-            eps = torch.randn_like(mean)
-            assert torch.allclose(torch.atanh(action.double()).float(), mean + temperature * std * eps, atol=1e-4)
-        torch.manual_seed(1)
-        assert torch.allclose(action, actor(feat, goal)[0])  # T = 1 is a sample of pi
 
 
 def test_phase2_reuse_sends_gradient_to_the_goal_only():
@@ -334,56 +265,6 @@ def test_eq4_updates_on_a_toy_world_raise_the_goal_reward_beyond_what_ignoring_t
     assert first > -1.3 and reward > -0.6, (first, reward)  # ignoring g: -1 at best
 
 
-def test_disagreement_is_small_where_the_data_went_and_large_off_it():
-    """Trained on transitions whose inputs lie in one small region, the members agree there (u about 1 in units of the
-    data's running mean, below it while the error still falls: the mean lags) and disagree far from it."""
-    torch.manual_seed(0)
-    ensemble = W.Disagreement(feat_dim=6, action_dim=2, target_dim=3, units=32)
-    opt = torch.optim.Adam(ensemble.parameters(), lr=3e-3)
-    mix = torch.randn(8, 3)
-    for _ in range(300):
-        feat, action = 0.3 * torch.randn(8, 10, 6), (0.3 * torch.randn(8, 10, 2)).tanh()
-        # target[:, t + 1] follows from s_t and a_t = action[:, t + 1]
-        target = torch.cat([torch.zeros(8, 1, 3), torch.cat([feat[:, :-1], action[:, 1:]], -1) @ mix], 1)
-        loss, metrics = ensemble.loss(feat, action, target, torch.zeros(8, 10, dtype=torch.bool))
-        opt.zero_grad()
-        loss.backward()
-        opt.step()
-    assert metrics["ensemble_loss"] < 0.05 * (mix**2).sum() and ensemble.scale > 0
-    with torch.no_grad():
-        near = ensemble.disagreement(0.3 * torch.randn(500, 6), (0.3 * torch.randn(500, 2)).tanh()).mean()
-        far = ensemble.disagreement(0.3 * torch.randn(500, 6) + 4.0, torch.ones(500, 2)).mean()
-    assert 0.05 < near < 2 and far > 20 * near, (near, far)
-
-
-def test_uncertainty_penalty_lowers_the_returns_by_the_lambda_return_of_minus_lambda_u():
-    """The same imagined rollout (same seed) with and without the penalty: Eq. 4's returns differ by exactly the
-    TD(lambda) return of -lambda u with zero values (lambda_return is linear), the goal reward logged is the same,
-    and the ensemble, like the world model, gets no gradient; without an ensemble the flag is refused."""
-    cfg, world_model, dist_net, actor, critic, slow_critic = make_agents()
-    batch = W.random_batch("state", 5, 2, 4, 6)
-    _, _, post = world_model.loss(batch)
-    start, _ = P.sample_starts(post, 16, torch.Generator().manual_seed(0))
-    goal = world_model.feat(post).flatten(0, 1)[:16].detach()
-    ensemble = W.Disagreement(world_model.feat_dim, 2, 5, units=8)
-    out = {}
-    for lam in (0.0, 0.5):
-        torch.manual_seed(1)
-        cfg.uncertainty = lam
-        out[lam] = P.policy_losses(world_model, dist_net, actor, critic, slow_critic, P.ReturnNorm(0.99), start, goal, cfg, ensemble=ensemble)
-    torch.manual_seed(1)
-    feat, action, _ = P.rollout(world_model, actor, start, goal, cfg.horizon)
-    with torch.no_grad():
-        u = ensemble.disagreement(feat[:, :-1], action)
-    shift = P.lambda_return(-0.5 * u, torch.zeros(16, cfg.horizon + 1), cfg.gamma, cfg.lambda_).mean().item()
-    assert out[0.5][2]["reward"] == out[0.0][2]["reward"] and out[0.5][2]["uncertainty"] == pytest.approx(u.mean().item(), rel=1e-5)
-    assert out[0.5][2]["return"] - out[0.0][2]["return"] == pytest.approx(shift, rel=1e-4) and shift < 0
-    out[0.5][0].backward()
-    assert all(p.grad is None for p in ensemble.parameters()) and all(p.requires_grad for p in ensemble.parameters())
-    with pytest.raises(ValueError, match="needs the run's Disagreement ensemble"):
-        P.policy_losses(world_model, dist_net, actor, critic, slow_critic, P.ReturnNorm(0.99), start, goal, cfg)
-
-
 def test_critic_with_the_goal_share_computed_once_equals_the_mlp_on_feat_and_goal():
     torch.manual_seed(0)
     cfg = P.ActorCriticConfig(**presets.PRESETS["ac"]["smoke"])
@@ -391,22 +272,6 @@ def test_critic_with_the_goal_share_computed_once_equals_the_mlp_on_feat_and_goa
     feat, goal = torch.randn(5, 3, 6), torch.randn(5, 4)  # (N, H + 1, F), (N, G)
     expected = critic.net(torch.cat([feat, goal[:, None].expand(-1, 3, -1)], -1)).squeeze(-1)
     assert torch.allclose(critic(feat, goal), expected, atol=1e-6)
-
-
-def test_feature_reward_is_the_cosine_of_the_goal_decoders_features():
-    """r = cos(p_hat(s_{k+1}), p_hat(g)): 1 where the imagined state reads as the goal, 0 where orthogonal, never the start
-    state's; a reward name policy_losses does not know is a one-line error naming the flag."""
-    class Decoder(torch.nn.Module):  # p_hat = the state itself, normalised
-        def decode(self, feat):
-            return torch.nn.functional.normalize(feat, dim=-1)
-
-    goal = torch.tensor([[2.0, 0.0], [0.0, 3.0]])
-    feat = torch.tensor([[[0.0, 9.0], [5.0, 0.0], [0.0, 1.0]], [[0.0, 1.0], [0.0, 2.0], [1.0, 1.0]]])  # (N, H + 1, F)
-    reward = P.feature_reward(Decoder(), feat, goal)
-    assert reward.shape == (2, 2) and torch.allclose(reward, torch.tensor([[1.0, 0.0], [1.0, 2**-0.5]]))
-    cfg = P.ActorCriticConfig(**presets.PRESETS["ac"]["smoke"], reward="features")
-    with pytest.raises(ValueError, match="--ac-reward 'features'"):
-        P.policy_losses(None, None, None, None, None, None, {}, goal, cfg)
 
 
 class OracleActor:
