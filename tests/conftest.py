@@ -45,11 +45,11 @@ def train_args(**given):
     return ns
 
 
-def docs_script(name):
-    """A script of docs/ (not a package) imported as a module, e.g. docs_script("ft_pairs")."""
+def probe_script(name):
+    """A script of probes/ (not a package) imported as a module, e.g. probe_script("ft_pairs")."""
     import importlib.util
 
-    path = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "docs", f"{name}.py")
+    path = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "probes", f"{name}.py")
     spec = importlib.util.spec_from_file_location(name, path)
     module = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(module)

@@ -8,7 +8,7 @@ import pytest
 import checkpoint
 import evaluate
 import presets
-from conftest import docs_script
+from conftest import probe_script
 
 
 def test_summary_and_across_runs_by_hand(tmp_path):
@@ -116,8 +116,8 @@ def test_gradient_share_across_runs_by_hand(tmp_path):
 
 
 def test_getting_up_row_classes_episodes_by_their_last_steps():
-    """docs/getting_up.py: an episode is up when its mean posture over the last 100 steps is >= 0.8, whatever came before."""
-    getting_up = docs_script("getting_up")
+    """probes/getting_up.py: an episode is up when its mean posture over the last 100 steps is >= 0.8, whatever came before."""
+    getting_up = probe_script("getting_up")
     posture = np.zeros((500, 3))
     posture[-100:, 0] = 0.85  # up only at the end
     posture[:400, 1] = 1.0  # up, then fell for the last 100 steps
@@ -127,22 +127,22 @@ def test_getting_up_row_classes_episodes_by_their_last_steps():
 
 
 def test_getting_up_landing_times_the_fall_of_episodes_that_end_up():
-    """docs/getting_up.py's landing: of the episodes up at the end, the median step of the lowest posture (first 150
+    """probes/getting_up.py's landing: of the episodes up at the end, the median step of the lowest posture (first 150
     steps) and of the first step back up after it; an episode that stays down is left out."""
-    getting_up = docs_script("getting_up")
+    getting_up = probe_script("getting_up")
     fall = lambda low, again: np.concatenate([np.ones(low), np.full(again - low, 0.1), np.ones(500 - again)])
     down = np.concatenate([np.ones(5), np.zeros(495)])
     assert getting_up.landing([fall(5, 15), fall(9, 30), fall(11, 40), down]) == (3, 9.0, 30.0)
 
 
 def test_imagination_gap_is_zero_when_reality_follows_imagination(smoke_run):
-    """docs/imagination_gap.py: read as real steps, the imagined states give the imagined reading (both -d(s_k, g) on
+    """probes/imagination_gap.py: read as real steps, the imagined states give the imagined reading (both -d(s_k, g) on
     arrival, k = 1 .. H); run_episodes hands over one posterior state per step, t = 0 .. steps."""
     import torch
 
     import envs
 
-    gap = docs_script("imagination_gap")
+    gap = probe_script("imagination_gap")
     cfgs, models, ckpt = checkpoint.load_run(smoke_run)
     wm, actor = models["world_model"], models["actor"]
     with torch.no_grad():
@@ -163,7 +163,7 @@ def test_imagination_gap_reads_the_unpolished_actor_where_the_checkpoint_keeps_i
     """--unpolished loads the checkpoint's actor_unpolished in place of the polished actor, and says so where there is none."""
     import torch
 
-    gap = docs_script("imagination_gap")
+    gap = probe_script("imagination_gap")
     ckpt = torch.load(os.path.join(smoke_run, "checkpoint.pt"), weights_only=True)
     assert "actor_unpolished" in ckpt  # the smoke preset polishes, as the cpu one does
     torch.save({k: v for k, v in ckpt.items() if k != "actor_unpolished"}, tmp_path / "checkpoint.pt")
@@ -175,13 +175,13 @@ def test_imagination_gap_reads_the_unpolished_actor_where_the_checkpoint_keeps_i
 
 
 def test_filter_probe_reproduces_the_benchmark_and_its_window_changes_the_state(smoke_run):
-    """docs/filter_probe.py: carried over the episode (window 0) the probe's filter is the benchmark's, return for return;
+    """probes/filter_probe.py: carried over the episode (window 0) the probe's filter is the benchmark's, return for return;
     a window shorter than the episode or z's mean gives other states, so other returns."""
     import torch
 
     import envs
 
-    probe = docs_script("filter_probe")
+    probe = probe_script("filter_probe")
     cfgs, models, ckpt = checkpoint.load_run(smoke_run)
     with torch.no_grad():
         goals = models["goal_vae"].goal(torch.randn(2, ckpt["p_dim"]))
@@ -193,12 +193,12 @@ def test_filter_probe_reproduces_the_benchmark_and_its_window_changes_the_state(
 
 
 def test_ensemble_probe_acts_with_the_mean_of_its_clones_actions():
-    """docs/ensemble_probe.py: K actors act with the mean of their policy.Actor.act."""
+    """probes/ensemble_probe.py: K actors act with the mean of their policy.Actor.act."""
     import torch
 
     import policy
 
-    ensemble = docs_script("ensemble_probe")
+    ensemble = probe_script("ensemble_probe")
     torch.manual_seed(0)
     cfg = policy.ActorCriticConfig(**presets.PRESETS["ac"]["smoke"])
     actors = [policy.Actor(cfg, 5, 5, 3) for _ in range(3)]

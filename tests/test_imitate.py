@@ -12,7 +12,7 @@ import checkpoint
 import imitate
 import ot_reward
 import presets
-from conftest import docs_script
+from conftest import probe_script
 
 SMOKE = imitate.ImitateConfig(**presets.PRESETS["imitate"]["smoke"])
 
@@ -198,12 +198,12 @@ def test_zero_shot_demo_0_is_finetuning_that_never_moves_the_goal(smoke_run, tmp
 
 
 def test_ot_probe_scores_goals_alike_for_alike_goals(smoke_run):
-    """docs/ot_probe.py: J(g) is a mean OT reward (<= 0), the same for the same goal (every goal meets the same starts and
+    """probes/ot_probe.py: J(g) is a mean OT reward (<= 0), the same for the same goal (every goal meets the same starts and
     imagination noise), and the script prints one line per cell and the summary."""
     import subprocess
     import sys
 
-    probe = docs_script("ot_probe")
+    probe = probe_script("ot_probe")
     cfgs, models, _ = checkpoint.load_run(smoke_run)
     feat_dim = models["world_model"].feat_dim
     demo_p = torch.nn.functional.normalize(torch.randn(2, 20, models["goal_vae"].feat_dim), dim=-1)

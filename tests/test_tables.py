@@ -7,7 +7,7 @@ import shutil
 import imitate
 import presets
 import tables
-from conftest import docs_script
+from conftest import probe_script
 
 SMOKE = imitate.ImitateConfig(**presets.PRESETS["imitate"]["smoke"])
 
@@ -131,9 +131,9 @@ def test_finetuning_gain_is_paired_by_cell_and_seed():
 
 
 def test_ft_pairs_pairs_seeds_of_two_variants(tmp_path):
-    """docs/ft_pairs.py: A's last GIIL-FT row of a (demo, view, seed) against B's, both against A's GIIL-ZS (demo 0);
+    """probes/ft_pairs.py: A's last GIIL-FT row of a (demo, view, seed) against B's, both against A's GIIL-ZS (demo 0);
     a row of A with B's settings (copied, its variant not run yet) is no pair."""
-    ft_pairs = docs_script("ft_pairs")
+    ft_pairs = probe_script("ft_pairs")
     row = lambda method, seed, score, demo="walker_walk", **config: dict(demo=demo, view="side", task="walk", setting="SE-SV",
                                                                           method=method, seed=seed, score=score, config=config)
     frozen = [row("GIIL-FT", s, 50.0 + s) for s in range(2)] + [row("GIIL-FT", 0, 10.0, demo="walker_run")]

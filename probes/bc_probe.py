@@ -1,10 +1,12 @@
-"""The behaviour-cloning probe of docs/experiments.md (Phase 1): how far hindsight goal-conditioned behaviour cloning
-alone (cloning.bc_loss, no Eq. 4) takes a fresh actor on the frozen world model and goal VAE of a trained run, scored
+"""Phase 1's cloning probe: how far hindsight behaviour cloning alone takes a fresh actor on a trained world model.
+
+The behaviour-cloning probe of docs/results.md (What the actors are): how far hindsight goal-conditioned behaviour
+cloning alone (cloning.bc_loss, no Eq. 4) takes a fresh actor on the frozen world model and goal VAE of a trained run, scored
 by the goal-reaching benchmark (evaluate.goal_reaching, --episodes per demo goal). It first prints what the data
 allow: the mean normalised score of D_body's expert episodes per task, and for each own side-view demo's last feature
 p_T the share of its 200 nearest D_body frames (cosine of p) that come from the same task. Run from the repository root:
 
-    python docs/bc_probe.py runs/walker_bc1_s0 --steps 20000 [--batches 1000] [--final-share 0.5] [--units 256 --layers 2]
+    python probes/bc_probe.py runs/walker_bc1_s0 --steps 20000 [--batches 1000] [--final-share 0.5] [--units 256 --layers 2]
         [--keep-actor] [--data DIR] [--episodes 3] [--seed N]
 """
 import argparse

@@ -1,4 +1,6 @@
-"""The getting-up probe of docs/experiments.md (Phase 1): where the goal-reaching benchmark's points are lost, read
+"""Phase 1's getting-up probe: where the goal-reaching benchmark's points are lost, read through the body's posture.
+
+The getting-up probe of docs/results.md (Where the points are lost): where the goal-reaching benchmark's points are lost, read
 through the body's posture, the stand reward (3 standing + upright) / 4 (envs.posture: 1 upright at stand height;
 walk and run multiply their speed term by it). Every episode starts from DMC's random pose and falls first. An episode
 is "up at the end" when its mean posture over its last 100 steps is >= 0.8. Per task: the mean posture over all
@@ -14,8 +16,8 @@ Four readings:
   episodes that ended up, then of those that ended down (the first 30 of each by name, the benchmark's seeds).
 Run from the repository root:
 
-    python docs/getting_up.py agents/stickman --data-too --data-goals
-    python docs/getting_up.py agents/stickman --other-goals --data-too --data data/late
+    python probes/getting_up.py agents/stickman --data-too --data-goals
+    python probes/getting_up.py agents/stickman --other-goals --data-too --data data/late
 """
 import argparse
 import glob

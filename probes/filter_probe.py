@@ -1,5 +1,7 @@
-"""The filter probe of docs/experiments.md (Phase 1): does the agent lose goal-reaching points to how the world model
-filters the real episode? The goal-reaching benchmark's episodes (own side-view demos as goals, 3 episodes per demo,
+"""Phase 1's filter probe: does the agent lose goal-reaching points to how the world model filters the real episode?
+
+The filter probe of docs/ablations.md (The actor and how it acts): does the agent lose goal-reaching points to how the
+world model filters the real episode? The goal-reaching benchmark's episodes (own side-view demos as goals, 3 episodes per demo,
 the benchmark's seeds) with the state the actor reads computed three ways:
   plain    the benchmark's own: one filter over the whole 500-step episode, z_t sampled (evaluate.run_episodes)
   window   the filter restarted at every step over the last W steps only, as training's W-step segments see it: a
@@ -7,7 +9,7 @@ the benchmark's seeds) with the state the actor reads computed three ways:
   mean     one filter over the whole episode with z_t the posterior mean instead of a sample
 Run from the repository root:
 
-    python docs/filter_probe.py agents/stickman --data data/late [--window 50] [--mean]
+    python probes/filter_probe.py agents/stickman --data data/late [--window 50] [--mean]
 """
 import argparse
 import dataclasses

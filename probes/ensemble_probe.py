@@ -1,14 +1,16 @@
-"""The ensemble probe of docs/experiments.md (Phase 1): do K hindsight clones acting together reach goals better than
-one? K fresh actors are cloned (cloning.polish from a fresh actor, --steps each, --batches D_body batches of posterior
+"""Phase 1's ensemble probe: do K hindsight clones acting with their mean action reach goals better than one?
+
+The ensemble probe of docs/ablations.md (The actor and how it acts): do K hindsight clones acting together reach goals
+better than one? K fresh actors are cloned (cloning.polish from a fresh actor, --steps each, --batches D_body batches of posterior
 states) on the frozen world model and goal VAE of a trained run, clone k with the cloning seed 100 * seed + k; the
 goal-reaching benchmark (3 episodes per own side-view demo goal, the benchmark's seeds) then scores clone 0 alone and,
 for K > 1, the K clones acting with the mean of their actions. Clone 0 of a longer --steps starts as clone 0 of a
 shorter one (same seeds): K = 1 with K times the steps is the equal-compute single clone. With --keep-actor, clone 0 is
 the run's own actor and clones 1 .. K - 1 go on cloning from it. Run from the repository root:
 
-    python docs/ensemble_probe.py agents/stickman --data data/s560 --seed 0 --clones 3 --steps 20000
-    python docs/ensemble_probe.py agents/stickman --data data/s560 --seed 0 --clones 1 --steps 60000
-    python docs/ensemble_probe.py agents/stickman --data data/late --seed 1 --clones 3 --steps 20000 --keep-actor
+    python probes/ensemble_probe.py agents/stickman --data data/s560 --seed 0 --clones 3 --steps 20000
+    python probes/ensemble_probe.py agents/stickman --data data/s560 --seed 0 --clones 1 --steps 60000
+    python probes/ensemble_probe.py agents/stickman --data data/late --seed 1 --clones 3 --steps 20000 --keep-actor
 """
 import argparse
 import copy

@@ -1,5 +1,7 @@
-"""The imagination-gap probe of docs/experiments.md (Phase 1, "Eq. 4 beside the cloning, and alone"): does the world
-model keep what it promises the actor? The agent runs the benchmark's episodes (its own side-view demos as goals,
+"""Phase 1's imagination-gap probe: does the world model keep what it promises the actor (Eq. 4's reward, imagined vs real)?
+
+The imagination-gap probe of docs/ablations.md (Eq. 4 beside the cloning): does the world model keep what it promises
+the actor? The agent runs the benchmark's episodes (its own side-view demos as goals,
 g = q(s | p_T), the benchmark's seeds) for the first 115 steps; from its posterior states at t0 = 10, 40, 70, 100 the
 same actor is imagined 15 steps towards g (Eq. 4's rollout), and Eq. 4's reward -d(s_k, g), k = 1 .. 15, is averaged
 twice: over the imagined states, and over the posterior states of the 15 real steps that followed. Per task and over
@@ -7,7 +9,7 @@ all: imagined, real and imagined minus real, mean +- s.e. over episodes. An acto
 environment does not follow earns more imagined than real reward. (Its --uncertainty, the disagreement of the deleted
 --ac-uncertainty's ensemble on the same steps, is in the code of commit 5fb4022.) Run from the repository root:
 
-    python docs/imagination_gap.py runs/stickman_late_s0 runs/stickman_distrl_s0
+    python probes/imagination_gap.py runs/stickman_late_s0 runs/stickman_distrl_s0
 """
 import argparse
 import os

@@ -1,5 +1,7 @@
-"""The OT-reward probe of docs/experiments.md (Phase 2): does the imagined OT reward that GIIL-FT climbs (Eq. 5) rank
-goals the way the task's true reward does? For each cell of an agent's table it scores candidate goals g by J(g), the
+"""Phase 2's OT-reward probe: does the imagined OT reward GIIL-FT climbs (Eq. 5) rank goals as the true reward does?
+
+The OT-reward probe of docs/results.md (What limits GIIL-FT): does the imagined OT reward that GIIL-FT climbs (Eq. 5)
+rank goals the way the task's true reward does? For each cell of an agent's table it scores candidate goals g by J(g), the
 mean per-step OT reward (ot_reward.py) of the frozen policy's imagined rollouts from the cell's demo start states, the
 quantity L_GI's returns are made of (same starts and windows for every g):
 * task discrimination: the candidates are the zero-shot goals q(s | p_T) of the 10 demos of each of the 4 tasks
@@ -8,7 +10,7 @@ quantity L_GI's returns are made of (same starts and windows for every g):
   g_k (the GIIL-ZS rows of the run's results.jsonl, so run the table first).
 Run from the repository root:
 
-    python docs/ot_probe.py agents/walker [--starts 64] [--settings SE-SV,SE-CV]
+    python probes/ot_probe.py agents/walker [--starts 64] [--settings SE-SV,SE-CV]
 """
 import argparse
 import os

@@ -1,10 +1,12 @@
-"""Two GIIL-FT variants of one agent, paired cell by cell and seed by seed (docs/experiments.md, Phase 2): run A's
+"""Phase 2's pairing: two GIIL-FT variants of one agent, cell by cell and seed by seed, each against GIIL-ZS (demo 0).
+
+Two GIIL-FT variants of one agent, paired cell by cell and seed by seed (docs/ablations.md, Phase 2): run A's
 GIIL-FT rows against run B's, and each against run A's GIIL-ZS (demo 0), the goal both start from. GIIL-FT seed s is
 evaluated on the same environment seeds in every run of an agent, so the differences are paired. Each (demo, view,
 seed) takes the run's last GIIL-FT row (a folder that holds rows of earlier settings too reads its latest). Run from
 the repository root, e.g. joint finetuning of psi (run A) against psi frozen (run B):
 
-    python docs/ft_pairs.py runs/walker_psi agents/walker
+    python probes/ft_pairs.py runs/walker_psi agents/walker
 """
 import argparse
 import collections
