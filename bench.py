@@ -27,11 +27,29 @@ def bench_render(repeat=200):
     print(f"render 64x64   dm_control default {1 / default:7.0f} frames/s | ours {1 / ours:7.0f} frames/s | ratio {default / ours:.1f}x")
 
 
-def bench_features():
-    """The default video encoder against rendering (+ physics), one thread: features must not hold collection back."""
+def features_per_s(frames_per_call=None, repeats=3):
+    """Frames/s of the default video encoder (one process, single-threaded numpy) and of rendering, on one walker
+    episode; frames_per_call: frames per encoder call, default one episode. -> (encoder frames/s, render frames/s)."""
     import video_encoder
 
-    encoder_fps, render_fps = video_encoder.bench()
+    env = envs.make_env("walker", "walk")
+    env.reset(seed=0)
+    rng = np.random.default_rng(0)
+    frames_per_call = frames_per_call or envs.EPISODE_STEPS + 1
+    start = time.perf_counter()
+    frames = [env.render()]
+    while len(frames) < frames_per_call:
+        env.step(rng.uniform(-1, 1, env.action_dim))
+        frames.append(env.render())
+    render_fps = frames_per_call / (time.perf_counter() - start)  # includes the physics steps, as collection does
+    env.close()
+    encoder, frames = video_encoder.DefaultEncoder(), np.stack(frames)
+    return frames_per_call / timed(lambda: encoder(frames), repeats, warmup=1), render_fps
+
+
+def bench_features():
+    """The default video encoder against rendering (+ physics), one thread: features must not hold collection back."""
+    encoder_fps, render_fps = features_per_s()
     print(f"features       default encoder {encoder_fps:7.0f} frames/s | render + physics {render_fps:7.0f} frames/s | ratio {encoder_fps / render_fps:.1f}x")
 
 
@@ -205,14 +223,34 @@ def bench_phase1(against=None, rounds=2, data="data"):
         shutil.rmtree(trees[against])
 
 
+def ot_seconds(B=256, T=16, M=500, K=10, D=64, repeat=3):
+    """Seconds per ot_reward.ot_reward call on one thread, whole-demo and windowed matching (torch's threads restored)."""
+    import torch
+    import torch.nn.functional as F
+
+    import ot_reward
+
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    gen = torch.Generator().manual_seed(0)
+    agent_p = torch.randn(B, T, D, generator=gen)
+    demo_p = F.normalize(torch.randn(K, M, D, generator=gen), dim=-1)
+    demo_offsets = torch.randint(0, M, (B,), generator=gen)
+    cfg = ot_reward.OTConfig()
+    seconds = lambda **kwargs: timed(lambda: ot_reward.ot_reward(agent_p, demo_p, cfg, **kwargs), repeat, warmup=1)
+    try:
+        return {"B": B, "T": T, "M": M, "K": K, "D": D, "whole_demo_s": seconds(), "window_s": seconds(demo_offsets=demo_offsets)}
+    finally:
+        torch.set_num_threads(threads)
+
+
 def bench_ot():
     """The OT reward (App. C): one call at imitate.py's cpu size and at a paper-like size, one thread."""
     import imitate
-    import ot_reward
 
     cpu = imitate.ImitateConfig()
     for B, M in ((cpu.starts, envs.EPISODE_STEPS), (256, envs.EPISODE_STEPS)):
-        r = ot_reward.bench(B=B, T=15, M=M, K=10, D=512, repeat=2)
+        r = ot_seconds(B=B, T=15, M=M, K=10, D=512, repeat=2)
         print(f"OT reward      B={B} trajectories x T=15 against K=10 demos of M={M} frames (D=512): {1000 * r['whole_demo_s']:.0f} ms (windowed: {1000 * r['window_s']:.0f} ms)")
 
 

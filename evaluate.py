@@ -2,7 +2,7 @@
 
 run_episodes acts with the frozen multi-task policy pi(a | s_t, g) in N environments at once (one batched world-model
 and actor call per step), s_t filtered online by the world model's posterior; the environments' true task rewards
-are summed but never shown to the agent.
+are summed but never shown to the agent. write_video puts a demo beside the agent's episode (imitate.py's videos).
 
 goal_reaching is how phase 1 is judged on its own (before any imitation): the goals are the agent's OWN body's
 side-view expert demos (D_demo, the SE-SV setting of GIIL-ZS): g = q(s | p_T), the goal encoder of the demo's last
@@ -20,6 +20,7 @@ well the goal decoder reads posterior and open-loop imagined states of held-out 
 import json
 import os
 
+import cv2
 import numpy as np
 import torch
 from tqdm import tqdm
@@ -68,6 +69,23 @@ def run_episodes(env_list, models, goals, steps, obs_key, seed, render=False, ra
         if on_step:
             on_step(env_list)
     return total, (np.stack(frames, 1) if render else None)
+
+
+def write_video(path, demo_frames, agent_frames):
+    """demo | agent side by side, 4x upscaled, 20 frames/s (one frame per agent step = 0.05 s); a whole file or none
+    (rundir.atomic_write: cv2 writes the temporary file by its name)."""
+    n = min(len(demo_frames), len(agent_frames))
+    both = np.concatenate([demo_frames[:n], agent_frames[:n]], axis=2)  # (n, 64, 128, 3)
+
+    def write(name):
+        writer = cv2.VideoWriter(name, cv2.VideoWriter_fourcc(*"mp4v"), 20, (both.shape[2] * 4, both.shape[1] * 4))
+        if not writer.isOpened():
+            raise ValueError(f"{path}: this OpenCV cannot write mp4 videos (no FFmpeg?); pass --video 0")
+        for frame in both:
+            writer.write(cv2.resize(cv2.cvtColor(frame, cv2.COLOR_RGB2BGR), None, fx=4, fy=4, interpolation=cv2.INTER_NEAREST))
+        writer.release()
+
+    rundir.atomic_write(path, write, by_name=True)
 
 
 @torch.no_grad()

@@ -34,7 +34,6 @@ import dataclasses
 import os
 import time
 
-import cv2
 import numpy as np
 import torch
 from tqdm import tqdm
@@ -165,23 +164,6 @@ def finetune_goal(models, cfgs, ic, ot_cfg, p_goal, demo_p, seed, device, optim_
     return goal.detach()
 
 
-def write_video(path, demo_frames, agent_frames):
-    """demo | agent side by side, 4x upscaled, 20 frames/s (one frame per agent step = 0.05 s); a whole file or none
-    (rundir.atomic_write: cv2 writes the temporary file by its name)."""
-    n = min(len(demo_frames), len(agent_frames))
-    both = np.concatenate([demo_frames[:n], agent_frames[:n]], axis=2)  # (n, 64, 128, 3)
-
-    def write(name):
-        writer = cv2.VideoWriter(name, cv2.VideoWriter_fourcc(*"mp4v"), 20, (both.shape[2] * 4, both.shape[1] * 4))
-        if not writer.isOpened():
-            raise ValueError(f"{path}: this OpenCV cannot write mp4 videos (no FFmpeg?); pass --video 0")
-        for frame in both:
-            writer.write(cv2.resize(cv2.cvtColor(frame, cv2.COLOR_RGB2BGR), None, fx=4, fy=4, interpolation=cv2.INTER_NEAREST))
-        writer.release()
-
-    rundir.atomic_write(path, write, by_name=True)
-
-
 def imitate(run_dir, demo, view, finetune, ic, zero_shot=True, done=None, online_cfg=None):
     """GIIL-ZS (unless not zero_shot), GIIL-FT (with finetune) and GIIL-online (with an online.OnlineConfig, ours after
     Sec. 6) for one demo folder; appends each evaluation
@@ -223,7 +205,7 @@ def imitate(run_dir, demo, view, finetune, ic, zero_shot=True, done=None, online
                                                 cfgs["wm"].obs, 20_000 + 100 * seed, render)
         scores = [evaluate.episode_score(task, r, ic.eval_steps) for r in returns]
         if render:
-            write_video(os.path.join(out_dir, f"{demo}_{view}_{method.replace(' ', '_')}_s{seed}.mp4"), video_demo, frames[0])
+            evaluate.write_video(os.path.join(out_dir, f"{demo}_{view}_{method.replace(' ', '_')}_s{seed}.mp4"), video_demo, frames[0])
         row = {"agent": tc.env, "demo": demo, "view": view, "task": task, "setting": where, "method": method, "seed": seed,
                "score": float(np.mean(scores)), "episode_scores": scores, "time": round(time.time() - t0, 1), "demo_returns": demo_returns,
                "config": tables.result_config(ic, method, online_cfg), **extra}

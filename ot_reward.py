@@ -33,7 +33,6 @@ ot.sinkhorn(method='sinkhorn_log') iteration for iteration, and ot.emd in the sm
 in the main path (per-pair ot.sinkhorn, ot.batch.solve_batch) was several times slower at bench.py's
 size, and so was the log-domain form of this loop against the scaling form (docs/results.md, Speed).
 """
-import time
 from dataclasses import dataclass
 
 import torch
@@ -138,26 +137,3 @@ def ot_reward(agent_p, demo_p, cfg, demo_offsets=None):
     cost = cosine_cost(p, target[torch.arange(B, device=p.device), best])  # (B, T, M or T), differentiable in agent_p
     reward = -cfg.scale * (plan * cost).sum(-1)  # (B, T)
     return reward.to(agent_p.dtype), best
-
-
-def bench(B=256, T=16, M=500, K=10, D=64, repeat=3):
-    """Seconds per ot_reward call on one thread, whole-demo and windowed matching (for bench.py)."""
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    gen = torch.Generator().manual_seed(0)
-    agent_p = torch.randn(B, T, D, generator=gen)
-    demo_p = F.normalize(torch.randn(K, M, D, generator=gen), dim=-1)
-    demo_offsets = torch.randint(0, M, (B,), generator=gen)
-    cfg = OTConfig()
-
-    def seconds(**kwargs):
-        ot_reward(agent_p, demo_p, cfg, **kwargs)  # warm-up
-        start = time.perf_counter()
-        for _ in range(repeat):
-            ot_reward(agent_p, demo_p, cfg, **kwargs)
-        return (time.perf_counter() - start) / repeat
-
-    try:
-        return {"B": B, "T": T, "M": M, "K": K, "D": D, "whole_demo_s": seconds(), "window_s": seconds(demo_offsets=demo_offsets)}
-    finally:
-        torch.set_num_threads(threads)

@@ -47,21 +47,19 @@ TorchScript plug-in contract (what the file must hold; `torch.jit.save(torch.jit
   Outputs are L2-normalised here, so the module need not do it.
 
 Run `python video_encoder.py --eval` to measure how well the features tell the four tasks apart on
-D_demo (nearest task centroid, the four settings) and how much the camera moves them, `--bench` for the
-frames/s of the default encoder.
+D_demo (nearest task centroid, the four settings) and how much the camera moves them; the frames/s of the default
+encoder against rendering: `python bench.py --only features`.
 """
 import argparse
 import glob
 import hashlib
 import itertools
 import os
-import time
 
 import numpy as np
 import torch
 from tqdm import tqdm
 
-import envs
 from envs import BODIES, SETTINGS, TASKS, VIEWS
 
 WINDOW = 8  # k: InternVideo2 in GenRL, 8-frame windows at stride 1 (Mazzaglia et al. 2024)
@@ -358,50 +356,19 @@ def evaluate(data="data", encoder=None):
     return accuracy
 
 
-def bench(frames_per_call=None, repeats=3):
-    """Frames/s of the default encoder (one process, single-threaded numpy) and of rendering, on one walker episode.
-
-    frames_per_call: frames per encoder call, default one episode (envs.EPISODE_STEPS + 1).
-    Returns (encoder frames/s, render frames/s).
-    """
-    env = envs.make_env("walker", "walk")
-    env.reset(seed=0)
-    rng = np.random.default_rng(0)
-    frames_per_call = frames_per_call or envs.EPISODE_STEPS + 1
-    start = time.perf_counter()
-    frames = [env.render()]
-    while len(frames) < frames_per_call:
-        env.step(rng.uniform(-1, 1, env.action_dim))
-        frames.append(env.render())
-    render_fps = frames_per_call / (time.perf_counter() - start)  # includes the physics steps, as collection does
-    env.close()
-    frames = np.stack(frames)
-    encoder = DefaultEncoder()
-    encoder(frames)  # warm-up
-    start = time.perf_counter()
-    for _ in range(repeats):
-        encoder(frames)
-    return repeats * frames_per_call / (time.perf_counter() - start), render_fps
-
-
 def main():
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0], allow_abbrev=False)
     parser.add_argument("--eval", action="store_true", help="task accuracy of the nearest task centroid on D_demo, the four settings")
-    parser.add_argument("--bench", action="store_true", help="frames/s of the default encoder against rendering")
     parser.add_argument("--data", default="data", help="dataset root holding demos/<body>_<task>_<view>/*.npz")
     parser.add_argument("--recompute", action="store_true", help="--eval on features recomputed from the stored pixels")
     parser.add_argument("--encoder", default="default", help="with --recompute: 'default' or a TorchScript video model file")
     args = parser.parse_args()
-    if not (args.eval or args.bench):
-        parser.error("pass --eval and/or --bench")
+    if not args.eval:
+        parser.error("pass --eval (the encoder's speed: python bench.py --only features)")
     if args.encoder != "default" and not args.recompute:
         parser.error("--encoder needs --recompute (without it, --eval reads the features stored in D_demo)")
     try:
-        if args.eval:
-            evaluate(args.data, load_encoder(args.encoder) if args.recompute else None)
-        if args.bench:
-            encoder_fps, render_fps = bench()
-            print(f"default encoder: {encoder_fps:.0f} frames/s on one core | rendering + physics: {render_fps:.0f} frames/s")
+        evaluate(args.data, load_encoder(args.encoder) if args.recompute else None)
     except (FileNotFoundError, ValueError) as error:
         raise SystemExit(f"error: {error}") from None
 

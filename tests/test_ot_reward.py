@@ -7,6 +7,7 @@ import pytest
 import torch
 import torch.nn.functional as F
 
+import bench
 import ot_reward
 from ot_reward import OTConfig, cosine_cost, sinkhorn
 
@@ -163,5 +164,5 @@ def test_bad_config():
 
 def test_bench_runs_and_restores_threads():
     threads = torch.get_num_threads()
-    result = ot_reward.bench(B=2, T=4, M=8, K=2, D=8, repeat=1)
+    result = bench.ot_seconds(B=2, T=4, M=8, K=2, D=8, repeat=1)
     assert result["whole_demo_s"] > 0 and result["window_s"] > 0 and torch.get_num_threads() == threads

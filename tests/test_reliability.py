@@ -16,6 +16,7 @@ import torch
 
 import checkpoint
 import collect
+import evaluate
 import experts
 import goal_vae
 import imitate
@@ -542,7 +543,7 @@ def test_a_video_cut_off_half_way_leaves_the_old_file(tmp_path, monkeypatch):
     with open(path, "wb") as f:
         f.write(b"the video of an earlier run")
     frames = np.zeros((6, 64, 64, 3), np.uint8)
-    writer = imitate.cv2.VideoWriter
+    writer = evaluate.cv2.VideoWriter
 
     class Dying:  # a writer killed after its second frame
         def __init__(self, *args):
@@ -557,10 +558,10 @@ def test_a_video_cut_off_half_way_leaves_the_old_file(tmp_path, monkeypatch):
                 raise RuntimeError("killed")
             self.writer.write(frame)
 
-    monkeypatch.setattr(imitate.cv2, "VideoWriter", Dying)
+    monkeypatch.setattr(evaluate.cv2, "VideoWriter", Dying)
     with pytest.raises(RuntimeError, match="killed"):
-        imitate.write_video(path, frames, frames)
+        evaluate.write_video(path, frames, frames)
     assert open(path, "rb").read() == b"the video of an earlier run" and os.listdir(tmp_path) == [os.path.basename(path)]
-    monkeypatch.setattr(imitate.cv2, "VideoWriter", writer)
-    imitate.write_video(path, frames, frames)
+    monkeypatch.setattr(evaluate.cv2, "VideoWriter", writer)
+    evaluate.write_video(path, frames, frames)
     assert open(path, "rb").read(12)[4:8] == b"ftyp" and os.listdir(tmp_path) == [os.path.basename(path)]
