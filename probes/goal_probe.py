@@ -27,7 +27,6 @@ the rollout, the cosine between the goal decoder's features of the replayed and 
     python probes/goal_probe.py --table docs/results/goal_probe_*.jsonl
 """
 import argparse
-import json
 import os
 import sys
 
@@ -36,6 +35,7 @@ import torch
 from tqdm import tqdm
 
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+import checkpoint  # noqa: E402
 import collect  # noqa: E402
 import envs  # noqa: E402
 import evaluate  # noqa: E402
@@ -44,7 +44,6 @@ import ot_reward  # noqa: E402
 import policy  # noqa: E402
 import rundir  # noqa: E402
 import tables  # noqa: E402
-import train  # noqa: E402
 import video_encoder  # noqa: E402
 
 OBJECTIVES = ("eq5", "demo_h15", "own_h15", "own0_h100", "own0_h500", "own0_h500_mean", "own0_h500_det", "replay", "posterior", "real")
@@ -111,7 +110,7 @@ def probe_cell(models, cfgs, encoder, task, demo_p, seeds, ot_cfg, steps, n_star
             post_p, replay_p = vae.decode(wm.feat(post)), vae.decode(replayed(models, post, goals))
             post_ot.append(ot_reward.ot_reward(post_p, demo_t, ot_cfg)[0].mean(1).numpy())
             replay_ot.append(ot_reward.ot_reward(replay_p, demo_t, ot_cfg)[0].mean(1).numpy())
-            error.append([(post_p[:, t] * replay_p[:, t]).sum(-1).mean().item() for t in ERROR_STEPS])
+            error.append([(post_p[:, min(t, steps)] * replay_p[:, min(t, steps)]).sum(-1).mean().item() for t in ERROR_STEPS])
         pool.append({k: v.flatten(0, 1) for k, v in post.items()})
         s0.append({k: v[:1, 0] for k, v in post.items()})  # the same start for every goal: the reset's filtered state
     pool = {k: torch.cat([p[k] for p in pool]) for k in pool[0]}
@@ -169,7 +168,7 @@ def main():
     if not args.run:
         parser.error("pass a run folder (e.g. agents/walker) or --table JSONL ...")
     torch.set_num_threads(1)
-    cfgs, models, _ = train.load_run(args.run)
+    cfgs, models, _ = checkpoint.load_run(args.run)
     agent, data = cfgs["train"].env, cfgs["train"].data
     encoder = video_encoder.load_encoder(cfgs["train"].encoder)
     ot_cfg = ot_reward.OTConfig()

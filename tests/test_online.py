@@ -10,6 +10,7 @@ import online
 import presets
 import tables
 import video_encoder
+from conftest import probe_script
 
 SMOKE = imitate.ImitateConfig(**presets.PRESETS["imitate"]["smoke"])
 
@@ -71,3 +72,25 @@ def test_online_end_to_end_pairs_with_its_zero_shot_start(smoke_run):
     assert on[0]["config"] == tables.result_config(SMOKE, tables.ONLINE, oc) and "schedule" in on[0]["config"]
     text = tables.markdown_tables("walker", rows)
     assert "GIIL-online (ours)" in text and "online - ZS (demo 0), paired" in text
+
+
+def test_goal_variance_splits_goal_from_episode_noise():
+    """Goals that differ only by their episodes' noise have no goal variance; a fixed offset per goal is all goal."""
+    goal_variance = probe_script("goal_variance")
+    g, e, rel = goal_variance.split([[10.0, 20.0, 30.0]] * 10)
+    assert (g, rel) == (0.0, 0.0) and abs(e - 10.0) < 1e-9
+    g, e, rel = goal_variance.split([[k, k, k] for k in range(10)])
+    assert e == 0.0 and rel == 1.0 and abs(g - np.std(range(10), ddof=1)) < 1e-9
+
+
+def test_goal_probe_scores_every_goal_by_every_objective(smoke_run):
+    """On the smoke agent: each objective gives one finite score per goal; `real` is online.ot_score of the same
+    episodes per step, and the replayed features start at the filtered ones (the same s_0)."""
+    goal_probe = probe_script("goal_probe")
+    cfgs, models, _ = checkpoint.load_run(smoke_run)
+    demo_p = np.random.default_rng(0).standard_normal((3, 40, models["goal_vae"].feat_dim)).astype(np.float32)
+    demo_p /= np.linalg.norm(demo_p, axis=-1, keepdims=True)
+    scores, true, error = goal_probe.probe_cell(models, cfgs, video_encoder.load_encoder("default"), "run", demo_p, [7],
+                                                imitate.ot_reward.OTConfig(iters=5), steps=12, n_starts=4)
+    assert set(scores) == set(goal_probe.OBJECTIVES) and all(v.shape == (3,) and np.isfinite(v).all() for v in scores.values())
+    assert true.shape == (3,) and error.shape == (len(goal_probe.ERROR_STEPS),)
