@@ -1,5 +1,7 @@
 """online.py: GIIL-online's search finds the candidate best under the OT reward, spends the stated budget, and never
 reads the task reward; end to end through imitate.py (smoke)."""
+import os
+
 import numpy as np
 import torch
 
@@ -8,6 +10,7 @@ import envs
 import imitate
 import online
 import presets
+import rundir
 import tables
 import video_encoder
 from conftest import probe_script
@@ -69,9 +72,12 @@ def test_online_end_to_end_pairs_with_its_zero_shot_start(smoke_run):
     zs0 = [r for r in rows if r["method"] == "GIIL-ZS (demo 0)"]
     assert len(on) == len(zs0) == oc.seeds
     assert on[0]["env_steps"] == online.budget(oc, 2) * SMOKE.eval_steps and on[0]["chosen_demo"] in (0, 1)
-    assert on[0]["config"] == tables.result_config(SMOKE, tables.ONLINE, oc) and "schedule" in on[0]["config"]
+    stored = [r for r in rundir.read_jsonl(os.path.join(smoke_run, "results.jsonl")) if r["method"] == tables.ONLINE]
+    assert stored[-1]["config"] == tables.result_config(SMOKE, tables.ONLINE, oc) and "schedule" in stored[-1]["config"]
     text = tables.markdown_tables("walker", rows)
     assert "GIIL-online (ours)" in text and "online - ZS (demo 0), paired" in text
+    # the same command again finds its rows finished (as read back from JSON) and runs nothing
+    assert imitate.imitate(smoke_run, "stickman_walk", "side", False, SMOKE, zero_shot=False, online_cfg=oc) == []
 
 
 def test_goal_variance_splits_goal_from_episode_noise():
