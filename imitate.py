@@ -280,7 +280,7 @@ def table(run_dir, ic, settings=envs.SETTINGS, demos_per_cell=10, shard=(0, 1), 
     unknown = [m for m in methods if m not in ("giil", "online") and m not in tables.BASELINES]
     if unknown:
         raise ValueError(f"--methods {','.join(unknown)}: choose from giil, online, {', '.join(tables.BASELINES)}")
-    oc = online.OnlineConfig(**online.PRESETS[ic.preset])
+    oc = online.OnlineConfig(**PRESETS["online"][ic.preset])
     rundir.check_flags(ic)
     baselines = baseline_configs(ic.preset, tables.BASELINES)  # their finished cells are shown whichever methods run now
     cfgs = checkpoint.load_run(run_dir)[0]
@@ -374,7 +374,7 @@ def main():
             if other:
                 raise ValueError(f"process {other} is running {args.demo} ({view} view) on {run} now ({lock}): wait for it to end; "
                                  f"the same command then goes on from its rows")
-            imitate(run, args.demo, view, args.finetune, ic, online_cfg=online.OnlineConfig(**online.PRESETS[ic.preset]) if args.online else None)
+            imitate(run, args.demo, view, args.finetune, ic, online_cfg=online.OnlineConfig(**PRESETS["online"][ic.preset]) if args.online else None)
     else:
         parser.error("pass --demo NAME (e.g. stickman_run) or --table")
 

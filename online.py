@@ -30,9 +30,6 @@ class OnlineConfig:
     seeds: int = 3  # GIIL-online seeds (as the paper's non-zero-shot methods), each paired with GIIL-ZS (demo 0)
 
 
-PRESETS = {"smoke": dict(schedule=((2, 1), (1, 1)), seeds=1), "cpu": dict(), "paper": dict()}
-
-
 def budget(cfg, candidates):
     """Real episodes the schedule spends on `candidates` goals."""
     return sum(min(keep, candidates) * episodes for keep, episodes in cfg.schedule)

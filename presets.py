@@ -4,7 +4,7 @@ cpu    each dataclass's defaults, so what `python train.py --env walker` trains 
        field's comment names its source: the paper, Dreamer, LEXA, GenRL or ours); the shipped agents are cpu runs
 smoke  every command end to end in seconds, the cpu recipe at toy sizes (the tests)
 paper  the paper's sizes and Eq. 4 as it is written (no cloning), for a GPU
-Each line below says where its values come from. GIIL-online's presets are online.PRESETS.
+Each line below says where its values come from.
 """
 import os
 
@@ -48,6 +48,8 @@ PRESETS = {
         "paper": dict(steps=2000, starts=256),  # ours: longer finetuning on more starts, for a GPU
     },
     "ot": {"smoke": dict(iters=20), "cpu": {}, "paper": {}},  # ours: toy
+    # GIIL-online (online.py, ours after Sec. 6): OnlineConfig
+    "online": {"smoke": dict(schedule=((2, 1), (1, 1)), seeds=1), "cpu": {}, "paper": {}},  # ours: toy
     # the baselines (genrl.py, aime_nob.py): GenRLConfig, AIMENoBConfig; no paper preset (imitate.py --table runs their cpu one)
     "genrl": {"smoke": dict(steps=3, starts=8, target_len=5, align_window=3, seeds=2, eval_steps=10), "cpu": {}},  # ours: toy
     "aime_nob": {"smoke": dict(env_steps=20, episode_steps=10, updates=2, starts=8, seeds=2, eval_steps=10), "cpu": {}},  # ours: toy

@@ -66,7 +66,7 @@ def test_refinement_never_reads_the_task_reward(smoke_run):
 
 
 def test_online_end_to_end_pairs_with_its_zero_shot_start(smoke_run):
-    oc = online.OnlineConfig(**online.PRESETS["smoke"])
+    oc = online.OnlineConfig(**presets.PRESETS["online"]["smoke"])
     rows = imitate.imitate(smoke_run, "stickman_walk", "side", False, SMOKE, zero_shot=False, online_cfg=oc)
     on = [r for r in rows if r["method"] == tables.ONLINE]
     zs0 = [r for r in rows if r["method"] == "GIIL-ZS (demo 0)"]
