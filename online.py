@@ -36,8 +36,9 @@ def budget(cfg, candidates):
 
 
 def episode_features(models, env_list, goals, steps, obs_key, seed, encoder):
-    """Real episodes with goals (N, F) from env seeds seed, seed + 1, ... -> video features (N, steps + 1, D) of the
-    agent's own rendered frames. The environments' task returns are dropped here: nothing downstream can read them."""
+    """Real episodes with goals (N, F) from env seeds seed, seed + 1, ... (or a list of N seeds) -> video features
+    (N, steps + 1, D) of the agent's own rendered frames. The environments' task returns are dropped here: nothing
+    downstream can read them."""
     _, frames = evaluate.run_episodes(env_list, models, goals, steps, obs_key, seed, render=True)
     return np.stack([encoder(f) for f in frames])
 
