@@ -194,6 +194,7 @@ def imitate(run_dir, demo, view, finetune, ic, zero_shot=True, done=None, online
         done = {(r["method"], r["seed"]) for r in tables.finished(tables.load_results(run_dir), demo, view, demo_returns, configs)}
         if done:
             print(f"{results_path} has {len(done)} of these evaluations (these demos and settings): kept, not run again")
+    done = set(done)  # grows as this call evaluates: GIIL-FT and GIIL-online share their GIIL-ZS (demo 0) seeds
 
     def evaluate_goal(method, seed, goal, video_demo, **extra):
         """eval_episodes episodes at once with goal (F,), environment seeds 20000 + 100 seed + e: GIIL-FT seed s and
@@ -211,6 +212,7 @@ def imitate(run_dir, demo, view, finetune, ic, zero_shot=True, done=None, online
                "config": tables.result_config(ic, method, online_cfg), **extra}
         rundir.append_jsonl(results_path, row)
         rows.append(row)
+        done.add((method, seed))
 
     with torch.no_grad():
         goals = [models["goal_vae"].goal(torch.as_tensor(d["p"][-1], device=device)) for d in demos]  # GIIL-ZS: g = q(s | p_T)
@@ -221,9 +223,7 @@ def imitate(run_dir, demo, view, finetune, ic, zero_shot=True, done=None, online
         evaluate_goal("GIIL-ZS", k, goal, demos[k]["pixels"])
     if finetune:
         psi_star = {k: {n: t.clone() for n, t in m.state_dict().items()} for k, m in models.items()}  # clones: optimisers step in place
-        for seed in range(ic.seeds):  # each seed is independent of the others: its own RNG seeds, psi* reloaded
-            for k, m in models.items():  # each seed's GIIL-ZS (demo 0) and GIIL-FT start from psi*
-                m.load_state_dict(psi_star[k])
+        for seed in range(ic.seeds):  # each seed is independent of the others: its own RNG seeds, from psi*
             t0 = time.time()
             if ("GIIL-ZS (demo 0)", seed) not in done:
                 evaluate_goal("GIIL-ZS (demo 0)", seed, goals[0], demos[0]["pixels"])
@@ -234,11 +234,13 @@ def imitate(run_dir, demo, view, finetune, ic, zero_shot=True, done=None, online
                                  ckpt.get("optims"))
             # how far finetuning moved g: beside the distance between the demos' zero-shot goals (docs/results.md)
             evaluate_goal("GIIL-FT", seed, goal, demos[0]["pixels"], goal_shift=round((goal - goals[0]).norm().item(), 3))
+            for k, m in models.items():  # psi* back (--finetune-policy 1 moved it) for the next seed and for GIIL-online
+                m.load_state_dict(psi_star[k])
     if online_cfg:  # GIIL-online (online.py): the goal chosen among the demos' zero-shot goals by the OT reward of real rollouts
         encoder, demo_p = load_encoder(tc.encoder), np.stack([d["p"] for d in demos])
         for seed in range(online_cfg.seeds):
             t0 = time.time()
-            if ("GIIL-ZS (demo 0)", seed) not in done:
+            if ("GIIL-ZS (demo 0)", seed) not in done:  # not again where GIIL-FT's seeds had it
                 evaluate_goal("GIIL-ZS (demo 0)", seed, goals[0], demos[0]["pixels"])
             if (tables.ONLINE, seed) in done:
                 continue

@@ -100,3 +100,12 @@ def test_goal_probe_scores_every_goal_by_every_objective(smoke_run):
                                                 imitate.ot_reward.OTConfig(iters=5), steps=12, n_starts=4)
     assert set(scores) == set(goal_probe.OBJECTIVES) and all(v.shape == (3,) and np.isfinite(v).all() for v in scores.values())
     assert true.shape == (3,) and error.shape == (len(goal_probe.ERROR_STEPS),)
+
+
+def test_finetune_and_online_share_their_zero_shot_start(smoke_run):
+    """One command with both: GIIL-ZS (demo 0) once per seed, not once per method."""
+    oc = online.OnlineConfig(**presets.PRESETS["online"]["smoke"])
+    rows = imitate.imitate(smoke_run, "walker_jump", "diagonal", True, SMOKE, zero_shot=False, online_cfg=oc)
+    zs0 = [r["seed"] for r in rows if r["method"] == "GIIL-ZS (demo 0)"]
+    assert sorted(zs0) == list(range(max(SMOKE.seeds, oc.seeds)))
+    assert sum(r["method"] == tables.ONLINE for r in rows) == oc.seeds
