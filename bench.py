@@ -53,23 +53,6 @@ def bench_features():
     print(f"features       default encoder {encoder_fps:7.0f} frames/s | render + physics {render_fps:7.0f} frames/s | ratio {encoder_fps / render_fps:.1f}x")
 
 
-def bench_collect(episodes=2):
-    """D_body episodes per second on one core: simulate, render, features, compressed write (collect._worker)."""
-    import tempfile
-
-    import collect
-
-    cfg = collect.CollectConfig(explore_episodes=episodes, task_episodes=1)
-    jobs = collect.episode_jobs("walker", cfg, tempfile.mkdtemp())
-    explore, task = [j for j in jobs if j[1]["kind"] == "explore"], [j for j in jobs if j[1]["kind"] == "walk"]
-    for name, chosen in (("exploration", explore), ("expert snapshot", task)):
-        start = time.perf_counter()
-        for paths, job in chosen:
-            collect._worker((paths, job, "default"))
-        per = (time.perf_counter() - start) / len(chosen)
-        print(f"collect        {name} episode ({job['steps']} steps) {per:5.1f} s | {3600 / per:5.0f} episodes/h per core")
-
-
 def component_updates(preset="cpu", obs_dim=24, action_dim=6, p_dim=64, device="cpu"):
     """One update of each phase-1 component at a preset's sizes, on a random batch of collect.py's shapes, as
     {name: zero-argument function}: forward, backward, gradient clipping and an Adam step, as train.py does them."""
@@ -195,32 +178,103 @@ def train_updates_per_s(tree, data, threads, logs=4, every=10):
         proc.wait()
 
 
-def bench_phase1(against=None, rounds=2, data="data"):
-    """Updates/s of the real train.py loop (cpu preset, walker's D_body) at 1 and 2 threads, and with --against REV the
-    same for that commit's code, alternating old and new `rounds` times in this one run so that both see the same load."""
+# GIIL-FT's update (imitate.finetune_goal) of the shipped walker on the stickman's side-view walk demos, timed in a
+# source tree of its own (its load_run was train.py's before checkpoint.py): seconds per update after 3 warm-up updates
+FT_UPDATE = """
+import dataclasses, sys, time
+import torch
+import collect, imitate, ot_reward, rundir
+try:
+    from checkpoint import load_run
+except ImportError:
+    from train import load_run
+torch.set_num_threads(1)
+rundir.fast_matmul()
+cfgs, models, _ = load_run(sys.argv[1], "cpu")
+demo_p = [d["p"] for d in collect.load_folder(sys.argv[2], ("p",))]
+run = lambda n: imitate.finetune_goal(models, cfgs, dataclasses.replace(imitate.ImitateConfig(), steps=n), ot_reward.OTConfig(),
+                                      torch.as_tensor(demo_p[0][-1]), demo_p, 0, "cpu")
+run(3)
+start = time.perf_counter()
+run(int(sys.argv[3]))
+print((time.perf_counter() - start) / int(sys.argv[3]))
+"""
+
+# one D_body episode of each kind (collect._worker: simulate, render, features, compressed write), timed in a source tree
+COLLECT_EPISODE = """
+import sys, tempfile, time
+import collect
+cfg = collect.CollectConfig(explore_episodes=1, task_episodes=1)
+jobs = collect.episode_jobs("walker", cfg, tempfile.mkdtemp())
+start = time.perf_counter()
+for paths, job in jobs:
+    collect._worker((paths, job, "default"))
+print((time.perf_counter() - start) / len(jobs))
+"""
+
+
+def in_tree(tree, code, *args):
+    """Runs `code` (a script that prints one number) with the source tree `tree` as its working directory -> that number."""
+    import subprocess
+    import sys
+
+    env = {**os.environ, "OMP_NUM_THREADS": "1"}
+    out = subprocess.run([sys.executable, "-c", code, *map(str, args)], cwd=tree, env=env, capture_output=True, text=True)
+    if out.returncode:
+        raise RuntimeError(f"bench.py in {tree}: {out.stderr.strip().splitlines()[-1]}")
+    return float(out.stdout.split()[-1])
+
+
+def against(rev, measures, rounds=2):
+    """Each of `measures` ({label: (unit, higher_is_better, fn(tree))}) for this tree and, with rev, for that git commit's
+    source, alternating old and new `rounds` times in this one run so that both see the same load; one line each."""
     import shutil
     import subprocess
     import tempfile
 
+    trees = {"this tree": os.path.dirname(os.path.abspath(__file__))}
+    if rev:
+        trees = {rev: tempfile.mkdtemp(), **trees}
+        archive = subprocess.run(["git", "archive", rev], capture_output=True, check=True).stdout
+        subprocess.run(["tar", "-x", "-C", trees[rev]], input=archive, check=True)
+    try:
+        for label, (unit, higher, measure) in measures.items():
+            values = {name: [] for name in trees}
+            for _ in range(rounds):
+                for name, tree in trees.items():
+                    values[name].append(measure(tree))
+            line = " | ".join(f"{name} {np.mean(v):.3g} {unit}" for name, v in values.items())
+            if rev:
+                ratio = np.mean(values["this tree"]) / np.mean(values[rev])
+                line += f" | speed-up {ratio if higher else 1 / ratio:.2f}x"
+            print(f"{label}: {line}")
+    finally:
+        if rev:
+            shutil.rmtree(trees[rev])
+
+
+def bench_phase1(rev=None, data="data"):
+    """Updates/s of the real train.py loop (cpu preset, walker's D_body) at 1 and 2 threads, with --against REV beside
+    that commit's code in the same run."""
     if not os.path.isdir(os.path.join(data, "walker")):
         raise SystemExit(f"bench.py --only phase1 trains on {data}/walker: collect it with `python collect.py --env walker`")
     data = os.path.abspath(data)
-    trees = {"this tree": os.path.dirname(os.path.abspath(__file__))}
-    if against:
-        old = tempfile.mkdtemp()
-        archive = subprocess.run(["git", "archive", against], capture_output=True, check=True).stdout
-        subprocess.run(["tar", "-x", "-C", old], input=archive, check=True)
-        trees = {against: old, **trees}
-    for threads in (1, 2):
-        speeds = {name: [] for name in trees}
-        for _ in range(rounds):
-            for name, tree in trees.items():
-                speeds[name].append(train_updates_per_s(tree, data, threads))
-        line = " | ".join(f"{name} {np.mean(v):.2f} updates/s" for name, v in speeds.items())
-        ratio = f" | ratio {np.mean(speeds['this tree']) / np.mean(speeds[against]):.2f}x" if against else ""
-        print(f"phase 1        train.py loop, {threads} thread{'s' if threads > 1 else ''}: {line}{ratio}")
-    if against:
-        shutil.rmtree(trees[against])
+    against(rev, {f"phase 1        train.py loop, {n} thread{'s' if n > 1 else ''}": ("updates/s", True, lambda tree, n=n: train_updates_per_s(tree, data, n))
+                  for n in (1, 2)})
+
+
+def bench_finetune(rev=None, run="agents/walker", demos="data/demos/stickman_walk_side", updates=10):
+    """Seconds per GIIL-FT update (imitate.finetune_goal, one thread), with --against REV beside that commit's code."""
+    if not os.path.isdir(demos):
+        raise SystemExit(f"bench.py --only finetune reads {demos}: collect it with `python collect.py --demos`")
+    run, demos = os.path.abspath(run), os.path.abspath(demos)
+    against(rev, {"GIIL-FT        update (64 starts x 15 steps, windowed OT)": ("s", False, lambda tree: in_tree(tree, FT_UPDATE, run, demos, updates))})
+
+
+def bench_collect(rev=None):
+    """Seconds per D_body episode on one core (an exploration and an expert-snapshot episode: simulate, render,
+    features, compressed write), with --against REV beside that commit's code."""
+    against(rev, {"collect        D_body episode (500 steps), one core": ("s", False, lambda tree: in_tree(tree, COLLECT_EPISODE))})
 
 
 def ot_seconds(B=256, T=16, M=500, K=10, D=64, repeat=3):
@@ -254,12 +308,15 @@ def bench_ot():
         print(f"OT reward      B={B} trajectories x T=15 against K=10 demos of M={M} frames (D=512): {1000 * r['whole_demo_s']:.0f} ms (windowed: {1000 * r['window_s']:.0f} ms)")
 
 
-SECTIONS = {"render": bench_render, "features": bench_features, "collect": bench_collect, "components": bench_components, "phase1": bench_phase1, "ot": bench_ot, "gpu": bench_gpu}
+AGAINST = ("phase1", "finetune", "collect")  # the sections that take --against
+SECTIONS = {"render": bench_render, "features": bench_features, "collect": bench_collect, "components": bench_components, "phase1": bench_phase1, "finetune": bench_finetune,
+            "ot": bench_ot, "gpu": bench_gpu}
 
 if __name__ == "__main__":
     parser = argparse.ArgumentParser(description=__doc__, allow_abbrev=False)
     parser.add_argument("--only", nargs="+", choices=SECTIONS, default=[s for s in SECTIONS if s != "gpu"], help="default: all but gpu")
-    parser.add_argument("--against", metavar="REV", help="phase1: also time this git commit's train.py, in the same run (e.g. 4ca0c2f)")
+    parser.add_argument("--against", metavar="REV", help="phase1, finetune, collect: also time this git commit's code, in the same run "
+                        "(e.g. 3e0cd69)")
     args = parser.parse_args()
     for name in args.only:
-        SECTIONS[name](args.against) if name == "phase1" else SECTIONS[name]()
+        SECTIONS[name](args.against) if name in AGAINST else SECTIONS[name]()

@@ -139,14 +139,15 @@ def finetune_goal(models, cfgs, ic, ot_cfg, p_goal, demo_p, seed, device, optim_
             opt_critic.load_state_dict(copy.deepcopy(optim_states["critic"]))
         segments = checkpoint.body_segments(cfgs)
     stop = lambda: "nothing more is appended to results.jsonl (a learning rate too high? --goal-lr, --critic-lr)"
-    demo_p = torch.as_tensor(np.stack(demo_p), device=device)  # (K, M, D): one collection, every demo of one length
+    # (K, M, D): one collection, every demo of one length; float64 once here, not in every ot_reward call (exact either way)
+    demo_p = torch.as_tensor(np.stack(demo_p), device=device, dtype=torch.float64)
     K, M = demo_p.shape[:2]
     bar = tqdm(range(ic.steps), desc=f"GIIL-FT seed {seed}", leave=False)
     for step in bar:
         # Eq. 5's start states: goal-encoder states of demo frames t0, matched against the frames that follow
         t0 = torch.randint(M - ac.horizon - 1, (ic.starts,), device=device)
         with torch.no_grad():
-            start = models["goal_vae"].encode(demo_p[torch.randint(K, (ic.starts,), device=device), t0])
+            start = models["goal_vae"].encode(demo_p[torch.randint(K, (ic.starts,), device=device), t0].float())
         start = {k: start[k] for k in ("deter", "stoch", "mean", "std")}
         gi_loss, ot_loss, metrics = goal_inference_loss(models, critic_ot, slow_ot, goal, start, demo_p, cfgs, ot_cfg, t0 + 1)
         for opt, loss, what in ((opt_goal, gi_loss, "Eq. 5 L_GI"), (opt_ot, ot_loss, "V_ot loss")):

@@ -100,6 +100,35 @@ def test_windowed_matching_uses_the_aligned_window():
         assert best[b] == k[0] and torch.allclose(reward[b], alone[0], rtol=0, atol=1e-12)
 
 
+def reference_reward(agent_p, demo_p, cfg, offsets=None):
+    """App. C written out one trajectory and one demo at a time (the windows gathered, as ot_reward computed them before
+    it normalised the demos once per call): r_t = -scale sum_j P_tj C_tj against the demo of least <P, C>."""
+    rewards, bests = [], []
+    for b in range(len(agent_p)):
+        x = agent_p[b].double()
+        targets = [d.double() if offsets is None else d.double()[min(offsets[b].item(), d.shape[0] - len(x)) :][: len(x)] for d in demo_p]
+        plans = [sinkhorn(cosine_cost(x, y).detach(), cfg.eps, cfg.iters) for y in targets]
+        k = min(range(len(targets)), key=lambda i: (plans[i] * cosine_cost(x, targets[i])).sum().item())
+        rewards.append(-cfg.scale * (plans[k] * cosine_cost(x, targets[k])).sum(-1))
+        bests.append(k)
+    return torch.stack(rewards).float(), torch.tensor(bests)
+
+
+@pytest.mark.parametrize("windowed", [False, True])
+def test_reward_and_gradient_equal_the_definition(windowed):
+    """The batched reward (demos normalised once, each window a view) and its gradient equal App. C trajectory by trajectory."""
+    gen = torch.Generator().manual_seed(0)
+    demo_p = 3 * torch.rand(4, 40, 16, generator=gen)  # not unit norm, float32: normalised inside
+    agent_p = torch.randn(9, 6, 16, generator=gen, requires_grad=True)
+    offsets = torch.randint(0, 40, (9,), generator=gen) if windowed else None
+    reward, best = ot_reward.ot_reward(agent_p, demo_p, OTConfig(scale=2.0), offsets)
+    grad, = torch.autograd.grad(reward.sum(), agent_p)
+    expected, expected_best = reference_reward(agent_p, demo_p, OTConfig(scale=2.0), offsets)
+    expected_grad, = torch.autograd.grad(expected.sum(), agent_p)
+    assert torch.equal(best, expected_best)
+    assert torch.allclose(reward, expected, rtol=0, atol=1e-6) and torch.allclose(grad, expected_grad, rtol=1e-5, atol=1e-7)
+
+
 def test_chunks_do_not_change_the_reward():
     agent_p, demos = unit(7, 6, 16, seed=0), unit(3, 40, 16, seed=1)
     one_batch = ot_reward.ot_reward(agent_p, demos, OTConfig(cpu_chunk_bytes=2**40))
@@ -143,6 +172,7 @@ nan_demo[3, 5] = float("nan")
         (torch.randn(4, 6, 16), torch.zeros(3, 0, 16), None, "demo_p must be a non-empty"),
         (torch.randn(6, 16), unit(30, 16, seed=0), None, r"agent_p must be a non-empty \(B, T, D\)"),
         (torch.randn(4, 6, 16), nan_demo, None, "demo_p contains NaN"),
+        (torch.randn(4, 6, 16), torch.full((30, 16), float("inf")), None, "demo_p contains NaN or inf"),
         (torch.full((4, 6, 16), float("nan")), unit(30, 16, seed=0), None, "agent_p contains NaN"),
         (torch.randn(4, 6, 8), unit(30, 16, seed=0), None, "feature sizes differ"),
         (torch.randn(4, 6, 16), unit(30, 16, seed=0), torch.tensor([0, 1]), r"demo_offsets must be a \(B,\)"),
