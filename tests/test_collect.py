@@ -66,6 +66,19 @@ def test_episodes_do_not_depend_on_the_callers_matmul_route():
     assert np.array_equal(plain["state"], routed["state"]) and np.array_equal(plain["action"], routed["action"])
 
 
+def test_an_episode_in_a_reused_env_is_that_of_a_fresh_one():
+    """A worker keeps one env per (body, task) across its episodes (collect._worker_env): an episode after another in
+    the same env has the states, actions and frames it has in a fresh process."""
+    job = lambda seed: dict(kind="explore", body="walker", task="stand", index=0, snapshot=None, steps=SMOKE.episode_steps,
+                            noise=0.3, seed=[0, 0, seed], views=("side",))
+    collect._ENVS.clear()
+    fresh = collect.simulate(job(1))[0]
+    collect.simulate(job(2))  # the env now holds another episode's last state
+    reused = collect.simulate(job(1))[0]
+    assert len(collect._ENVS) == 1
+    assert all(np.array_equal(fresh[k], reused[k]) for k in ("state", "action", "pixels"))
+
+
 def test_demo_return_is_sum_of_rewards_and_views_share_motion(tmp_path):
     cfg = collect.CollectConfig(**dict(presets.PRESETS["collect"]["smoke"], demo_episodes=1))
     collect.collect_demos(cfg, str(tmp_path), workers=2)
