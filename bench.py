@@ -53,12 +53,13 @@ def bench_features():
     print(f"features       default encoder {encoder_fps:7.0f} frames/s | render + physics {render_fps:7.0f} frames/s | ratio {encoder_fps / render_fps:.1f}x")
 
 
-def component_updates(preset="cpu", obs_dim=24, action_dim=6, p_dim=64, device="cpu"):
+def component_updates(preset="cpu", obs_dim=24, action_dim=6, p_dim=512, device="cpu"):
     """One update of each phase-1 component at a preset's sizes, on a random batch of collect.py's shapes, as
     {name: zero-argument function}: forward, backward, gradient clipping and an Adam step, as train.py does them."""
     import torch
 
     import checkpoint
+    import cloning
     import distance
     import goal_vae
     import policy
@@ -98,37 +99,57 @@ def component_updates(preset="cpu", obs_dim=24, action_dim=6, p_dim=64, device="
         policy.ema_update(slow_critic, critic, cfg["ac"].slow_critic_rate)
 
     pairs = lambda: distance.sample_pairs(batch["episode"], batch["is_first"], cfg["dist"].pairs)
+    clone = lambda: step("ac", cloning.bc_loss(actor, post_feat, goal_feat, batch["action"], goal_feat[:, -1], cfg["ac"].bc_final)[0])
     return {
         "Eq. 2 world model": lambda: step("wm", wm.loss(batch)[0]),
         "Eq. 3 goal VAE": lambda: step("goal", vae.loss(batch["p"], post)[0]),
         "Eq. 7 distance": lambda: step("dist", distance.distance_loss(dist_net, post_feat, pairs(), cfg["wm"].seq_len, cfg["dist"].contrastive_weight,
                                                                        goal_feat if cfg["dist"].encoder_goals else None)[0]),
         f"Eq. 4 actor-critic ({cfg['ac'].starts} starts x {cfg['ac'].horizon} steps)": actor_critic,
+        f"ours cloning step (x {cfg['ac'].bc_steps} per update)": clone,
     }
 
 
 def bench_components():
     """Each phase-1 component's update at the cpu preset, one thread, with fp32 matmuls in MKL and through oneDNN
-    (rundir.fast_matmul, what train.py uses where it stays fp32), alternating in this one run."""
+    (rundir.fast_matmul, what train.py uses where it stays fp32), alternating in this one run; with the matmul FLOPs of
+    each (forward and backward, torch.utils.flop_counter) and the rate they run at, against this core's peak (a
+    1024 x 1024 fp32 matmul on the same route): how far one thread could go without fewer FLOPs or less precision."""
     import torch
+    from torch.utils.flop_counter import FlopCounterMode
 
+    import checkpoint
     import rundir
 
     torch.set_num_threads(1)
     fast = rundir.fast_matmul()
-    updates, times = component_updates(), {}
+    routes = ("none", "bf16") if fast else ("none",)
+    updates, times, flops = component_updates(), {}, {}
+    for name, update in updates.items():
+        with FlopCounterMode(display=False) as counter:
+            update()
+        flops[name] = counter.get_total_flops()
     for _ in range(2):
-        for route in ("none", "bf16") if fast else ("none",):
+        for route in routes:
             torch.backends.mkldnn.matmul.fp32_precision = route
             for name, update in updates.items():
                 times.setdefault((name, route), []).append(timed(update, repeat=5, warmup=2))
+    a, b = torch.randn(1024, 1024), torch.randn(1024, 1024)
+    peak = 2 * 1024**3 / timed(lambda: a @ b, repeat=10)  # on the last route, oneDNN's where fast
+    used = routes[-1]
     for name in updates:
         line = f"phase 1        {name}: {1000 * np.mean(times[name, 'none']):.0f} ms"
         if fast:
             line += f" | oneDNN {1000 * np.mean(times[name, 'bf16']):.0f} ms | ratio {np.mean(times[name, 'none']) / np.mean(times[name, 'bf16']):.2f}x"
-        print(line)
+        print(line + f" | {flops[name] / 1e9:.2f} GFLOP at {flops[name] / np.mean(times[name, used]) / 1e9:.0f} GFLOP/s")
     if not fast:
         print("phase 1        (oneDNN fp32 matmuls not used: on this CPU they would not compute in fp32, rundir.fast_matmul)")
+    bc_steps = checkpoint.COMPONENTS["ac"][0]().bc_steps
+    count = {name: bc_steps if name.startswith("ours cloning") else 1 for name in updates}  # the first cloning step rides on Eq. 4's
+    total_flops = sum(count[n] * flops[n] for n in updates)
+    total_s = sum(count[n] * np.mean(times[n, used]) for n in updates)
+    print(f"phase 1        one update: {total_flops / 1e9:.1f} GFLOP in {1000 * total_s:.0f} ms ({total_flops / total_s / 1e9:.0f} GFLOP/s); "
+          f"this core's fp32 peak {peak / 1e9:.0f} GFLOP/s: at most {total_s * peak / total_flops:.2f}x on one thread with the same FLOPs")
 
 
 def bench_gpu():
