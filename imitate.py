@@ -246,10 +246,13 @@ def imitate(run_dir, demo, view, finetune, ic, zero_shot=True, done=None, online
             if (tables.ONLINE, seed) in done:
                 continue
             t0 = time.time()  # GIIL-online's time: its real episodes, their scoring and its evaluation
-            goal, k, log = online.refine_goal(models, cfgs, lambda: envs.make_env(tc.env, task), torch.stack(goals), demo_p, online_cfg,
+            posterior = online_cfg.candidates == "posterior"
+            candidates = online.posterior_goals(models["goal_vae"], demos[0]["p"][-1], len(goals), online_cfg.seed_base + seed) \
+                if posterior else torch.stack(goals)
+            goal, k, log = online.refine_goal(models, cfgs, lambda: envs.make_env(tc.env, task), candidates, demo_p, online_cfg,
                                               seed, encoder, ic.eval_steps, ot_cfg)
-            evaluate_goal(tables.ONLINE, seed, goal, demos[k]["pixels"], chosen_demo=k, env_steps=len(log) * ic.eval_steps,
-                          ot_log=[[i, s, round(score, 4)] for i, s, score in log])
+            evaluate_goal(tables.ONLINE, seed, goal, demos[0 if posterior else k]["pixels"], env_steps=len(log) * ic.eval_steps,
+                          ot_log=[[i, s, round(score, 4)] for i, s, score in log], **{"chosen_candidate" if posterior else "chosen_demo": k})
     for method in tables.METHODS + (tables.ONLINE,):
         scores = [r["score"] for r in rows if r["method"] == method]
         if scores:
@@ -270,7 +273,7 @@ def baseline_configs(preset, methods):
     return out
 
 
-def table(run_dir, ic, settings=envs.SETTINGS, demos_per_cell=10, shard=(0, 1), methods=("giil",)):
+def table(run_dir, ic, settings=envs.SETTINGS, demos_per_cell=10, shard=(0, 1), methods=("giil",), oc=None):
     """Tables 1-2 and 4-11 (tables.py): every setting x task for this agent, GIIL-ZS, GIIL-ZS (demo 0) and GIIL-FT
     ("giil" in `methods`) and the baselines named in `methods` (tables.BASELINES' keys: genrl.py, aime_nob.py, each with
     its preset of ic.preset); runs only what is missing from results.jsonl, and shows every finished cell of all of them.
@@ -283,7 +286,7 @@ def table(run_dir, ic, settings=envs.SETTINGS, demos_per_cell=10, shard=(0, 1), 
     unknown = [m for m in methods if m not in ("giil", "online") and m not in tables.BASELINES]
     if unknown:
         raise ValueError(f"--methods {','.join(unknown)}: choose from giil, online, {', '.join(tables.BASELINES)}")
-    oc = online.OnlineConfig(**PRESETS["online"][ic.preset])
+    oc = oc or online.OnlineConfig(**PRESETS["online"][ic.preset])
     rundir.check_flags(ic)
     baselines = baseline_configs(ic.preset, tables.BASELINES)  # their finished cells are shown whichever methods run now
     cfgs = checkpoint.load_run(run_dir)[0]
@@ -335,6 +338,8 @@ def main():
     parser.add_argument("--finetune", action="store_true", help="also GIIL-FT: finetune the goal (Eq. 5), --seeds seeds (default 5)")
     parser.add_argument("--online", action="store_true", help="also GIIL-online (ours, after Sec. 6; online.py): the goal chosen on real "
                         "rollouts by their OT reward, 20 episodes per seed, 3 seeds")
+    parser.add_argument("--online-candidates", choices=online.CANDIDATES, default=None, help="GIIL-online's candidate goals (default "
+                        "demos: the demos' zero-shot goals; posterior: demo 0's and 9 draws of q(s | p_T), online.OnlineConfig)")
     parser.add_argument("--table", action="store_true", help="all settings x tasks for this agent; keeps finished cells")
     parser.add_argument("--settings", help="with --table: the settings to run now, comma-separated (default all)")
     parser.add_argument("--shard", metavar="I/N", help="with --table: run only cells I, I + N, ... of those of --settings (N processes, one table)")
@@ -355,6 +360,9 @@ def main():
         parser.error(f"--{demo_only[0]} does nothing with --table (it runs every demo and view): drop it")
     if not args.table and table_only:
         parser.error(f"--{table_only[0]} works with --table only: add --table, or drop it")
+    if args.online_candidates and not (args.online or "online" in (args.methods or "").split(",")):
+        parser.error("--online-candidates sets GIIL-online: add --online (or --table --methods online), or drop it")
+    oc = online.OnlineConfig(**{**PRESETS["online"][ic.preset], **({"candidates": args.online_candidates} if args.online_candidates else {})})
     if args.demo and not args.finetune and any(f in given for f in FINETUNE_FIELDS):
         parser.error(f"--{[f for f in FINETUNE_FIELDS if f in given][0].replace('_', '-')} sets GIIL-FT: add --finetune, or drop it")
     run = args.run or checkpoint.resolve_run(args.env or "walker", ic.preset)
@@ -370,14 +378,14 @@ def main():
             assert len(shard) == 2 and 0 <= shard[0] < shard[1]
         except (ValueError, AssertionError):
             parser.error(f"--shard {args.shard}: pass I/N with 0 <= I < N, e.g. 0/4")
-        table(run, ic, settings, shard=shard, methods=(args.methods or "giil").split(","))
+        table(run, ic, settings, shard=shard, methods=(args.methods or "giil").split(","), oc=oc)
     elif args.demo:
         view, lock = args.view or "side", tables.cell_lock(run, args.demo, args.view or "side")
         with rundir.claim(lock) as other:  # as a --table cell: one process at a time
             if other:
                 raise ValueError(f"process {other} is running {args.demo} ({view} view) on {run} now ({lock}): wait for it to end; "
                                  f"the same command then goes on from its rows")
-            imitate(run, args.demo, view, args.finetune, ic, online_cfg=online.OnlineConfig(**PRESETS["online"][ic.preset]) if args.online else None)
+            imitate(run, args.demo, view, args.finetune, ic, online_cfg=oc if args.online else None)
     else:
         parser.error("pass --demo NAME (e.g. stickman_run) or --table")
 

@@ -8,7 +8,7 @@ never read (the agent does not have it): `episode_features` drops it.
 
 The search (ours; the paper is silent, precedents: successive halving, Jamieson & Talwalkar 2016; OpTI-BFM's choice
 among candidate latents, Rupf et al. 2025): the candidates are the zero-shot goals q(s | p_T) of the cell's demos
-(GIIL-ZS's goals). Round r runs every surviving candidate for `schedule[r][1]` episodes from the same environment
+(GIIL-ZS's goals), or (`candidates='posterior'`) demo 0's and 9 draws of q(s | p_T) around it. Round r runs every surviving candidate for `schedule[r][1]` episodes from the same environment
 seeds (common random numbers: the candidates are compared on the same start states), then keeps the `schedule[r + 1][0]`
 best by their mean OT score over all their episodes so far. The cpu schedule, 10 x 1, 4 x 1, 2 x 3, is 20 episodes
 (10,000 agent steps). The goal chosen is the best survivor; it is evaluated on environment seeds never used here.
@@ -28,11 +28,30 @@ class OnlineConfig:
     schedule: tuple = ((10, 1), (4, 1), (2, 3))  # (candidates kept, episodes each) per round (ours): 20 episodes
     seed_base: int = 50_000  # refinement env seeds: seed_base + 1000 seed + i, apart from the evaluation's 20000 + 100 seed + e
     seeds: int = 3  # GIIL-online seeds (as the paper's non-zero-shot methods), each paired with GIIL-ZS (demo 0)
+    # the candidates: 'demos', the cell's demos' zero-shot goals; 'posterior', demo 0's zero-shot goal and 9 draws of
+    # q(s | p_T) around it, whose outcomes differ more (ours: probes/goal_candidates.py, same-body cells)
+    candidates: str = "demos"
+
+    def __post_init__(self):
+        if self.candidates not in CANDIDATES:
+            raise ValueError(f"OnlineConfig.candidates={self.candidates!r}: choose from {', '.join(CANDIDATES)}")
+
+
+CANDIDATES = ("demos", "posterior")
 
 
 def budget(cfg, candidates):
     """Real episodes the schedule spends on `candidates` goals."""
     return sum(min(keep, candidates) * episodes for keep, episodes in cfg.schedule)
+
+
+@torch.no_grad()
+def posterior_goals(vae, p_last, n, seed):
+    """The 'posterior' candidates: q(s | p_T)'s mean (GIIL-ZS's goal) and n - 1 draws mean + std * eps of the goal
+    encoder's distribution, eps ~ N(0, I) from `seed`. p_last (D,) -> (n, F)."""
+    mean, std = vae.distribution(torch.as_tensor(p_last)[None])
+    eps = torch.randn(n - 1, mean.shape[-1], generator=torch.Generator().manual_seed(seed)).to(mean.device)
+    return torch.cat([mean, mean + std * eps])
 
 
 def episode_features(models, env_list, goals, steps, obs_key, seed, encoder):

@@ -60,8 +60,10 @@ def result_config(ic, method, oc=None):
     """The ImitateConfig fields a result depends on: evaluation for the zero-shot columns, finetuning too for GIIL-FT,
     the OnlineConfig oc's too for GIIL-online."""
     fields, evaluation = dataclasses.asdict(ic), ("eval_episodes", "eval_steps")
-    if method == ONLINE:  # as a row stores it: JSON has no tuples (the schedule reads back as lists)
-        return json.loads(json.dumps({**{k: fields[k] for k in evaluation}, **{k: v for k, v in dataclasses.asdict(oc).items() if k != "seeds"}}))
+    if method == ONLINE:  # as a row stores it: JSON has no tuples (the schedule reads back as lists); `candidates` only
+        # where it is not 'demos', what every GIIL-online row had before the field existed
+        online = {k: v for k, v in dataclasses.asdict(oc).items() if k != "seeds" and not (k == "candidates" and v == "demos")}
+        return json.loads(json.dumps({**{k: fields[k] for k in evaluation}, **online}))
     keep = evaluation if method.startswith("GIIL-ZS") else tuple(k for k in fields if k not in ("seeds", "video"))
     return {k: fields[k] for k in keep}
 

@@ -3,6 +3,7 @@ reads the task reward; end to end through imitate.py (smoke)."""
 import os
 
 import numpy as np
+import pytest
 import torch
 
 import checkpoint
@@ -78,6 +79,43 @@ def test_online_end_to_end_pairs_with_its_zero_shot_start(smoke_run):
     assert "GIIL-online (ours)" in text and "online - ZS (demo 0), paired" in text
     # the same command again finds its rows finished (as read back from JSON) and runs nothing
     assert imitate.imitate(smoke_run, "stickman_walk", "side", False, SMOKE, zero_shot=False, online_cfg=oc) == []
+
+
+def test_posterior_candidates_start_at_the_zero_shot_goal(smoke_run):
+    """'posterior': q(s | p_T)'s mean first (GIIL-ZS's goal), then seeded draws around it; a config without the field's
+    default in its stored form, so rows written before the field existed still count."""
+    _, models, _ = checkpoint.load_run(smoke_run)
+    vae, p_last = models["goal_vae"], np.random.default_rng(0).standard_normal(models["goal_vae"].feat_dim).astype(np.float32)
+    goals = online.posterior_goals(vae, p_last, 10, seed=3)
+    assert goals.shape == (10, vae.deter + vae.stoch) and torch.equal(goals[0], vae.goal(torch.as_tensor(p_last)).detach())
+    assert torch.equal(goals, online.posterior_goals(vae, p_last, 10, seed=3)) and not torch.equal(goals, online.posterior_goals(vae, p_last, 10, seed=4))
+    assert len(torch.unique(goals, dim=0)) == 10
+    assert "candidates" not in tables.result_config(SMOKE, tables.ONLINE, online.OnlineConfig())
+    assert tables.result_config(SMOKE, tables.ONLINE, online.OnlineConfig(candidates="posterior"))["candidates"] == "posterior"
+    with pytest.raises(ValueError, match="candidates='demo': choose from demos, posterior"):
+        online.OnlineConfig(candidates="demo")
+
+
+def test_online_with_posterior_candidates_end_to_end(smoke_run):
+    oc = online.OnlineConfig(**{**presets.PRESETS["online"]["smoke"], "candidates": "posterior"})
+    rows = imitate.imitate(smoke_run, "stickman_run", "side", False, SMOKE, zero_shot=False, online_cfg=oc)
+    on = [r for r in rows if r["method"] == tables.ONLINE]
+    assert len(on) == oc.seeds and on[0]["chosen_candidate"] in (0, 1) and "chosen_demo" not in on[0]
+    assert on[0]["config"]["candidates"] == "posterior"
+
+
+def test_goal_candidates_probe_sets_and_pairing(smoke_run):
+    """probes/goal_candidates.py: four sets of 10 goals, 'zs' the demos' zero-shot goals; --paired differences by cell and seed."""
+    probe = probe_script("goal_candidates")
+    _, models, _ = checkpoint.load_run(smoke_run)
+    demo_p = list(np.random.default_rng(0).standard_normal((10, 5, models["goal_vae"].feat_dim)).astype(np.float32))
+    sets = probe.candidate_sets(models["goal_vae"], demo_p)
+    assert list(sets) == ["zs", "q x1", "q x2", "mix"] and all(g.shape == (10, models["goal_vae"].deter + models["goal_vae"].stoch) for g in sets.values())
+    assert torch.equal(sets["zs"], models["goal_vae"].goal(torch.as_tensor(np.stack([p[-1] for p in demo_p]))).detach())
+    row = lambda method, seed, score, **config: dict(agent="walker", setting="SE-SV", task="run", seed=seed, method=method, score=score, config=config)
+    rows = [row("GIIL-ZS (demo 0)", 0, 40.0), row("GIIL-ZS (demo 0)", 1, 50.0), row("GIIL-online", 0, 45.0), row("GIIL-online", 1, 45.0),
+            row("GIIL-online", 0, 50.0, candidates="posterior"), row("GIIL-online", 1, 44.0, candidates="posterior")]
+    assert probe.paired(rows).splitlines()[-1] == "| walker | SE-SV run (2 pairs) | 47.0 +- 3.0 | +2.0 +- 8.0 | +2.0 +- 3.0 |"
 
 
 def test_goal_variance_splits_goal_from_episode_noise():

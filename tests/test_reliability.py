@@ -451,6 +451,8 @@ def test_a_missing_checkpoint_names_the_command_for_its_body_and_preset(tmp_path
     ("imitate.py", ["--table", "--demo", "stickman_run"], "--demo does nothing with --table (it runs every demo and view): drop it"),
     ("imitate.py", ["--table", "--finetune"], "--finetune does nothing with --table"),
     ("imitate.py", ["--demo", "stickman_run", "--seeds", "3"], "--seeds sets GIIL-FT: add --finetune, or drop it"),
+    ("imitate.py", ["--demo", "stickman_run", "--online-candidates", "posterior"], "--online-candidates sets GIIL-online: add --online"),
+    ("imitate.py", ["--table", "--methods", "giil", "--online-candidates", "posterior"], "--online-candidates sets GIIL-online"),
     ("train.py", ["--evaluate", "--resume"], "--resume is for training: it does nothing with --export or --evaluate"),
     ("collect.py", ["--features", "--data", "no_data", "--up-first"], "--task-episodes, --history-from and --up-first shape D_body: add --env BODY"),
     ("experts.py", ["--history"], "--history works with --eval only"),
