@@ -273,7 +273,6 @@ def _worker_env(body, task):
     return _ENVS[body, task]
 
 
-
 def _worker_encoder(spec):
     """One encoder per worker process, loaded on first use."""
     if spec not in _ENCODERS:

@@ -8,8 +8,9 @@ never read (the agent does not have it): `episode_features` drops it.
 
 The search (ours; the paper is silent, precedents: successive halving, Jamieson & Talwalkar 2016; OpTI-BFM's choice
 among candidate latents, Rupf et al. 2025): the candidates are the zero-shot goals q(s | p_T) of the cell's demos
-(GIIL-ZS's goals), or (`candidates='posterior'`) demo 0's and 9 draws of q(s | p_T) around it. Round r runs every surviving candidate for `schedule[r][1]` episodes from the same environment
-seeds (common random numbers: the candidates are compared on the same start states), then keeps the `schedule[r + 1][0]`
+(GIIL-ZS's goals), or (`candidates='posterior'`) demo 0's and 9 draws of q(s | p_T) around it. Round r runs every
+surviving candidate for `schedule[r][1]` episodes from the same environment seeds (common random numbers: the
+candidates are compared on the same start states), then keeps the `schedule[r + 1][0]`
 best by their mean OT score over all their episodes so far. The cpu schedule, 10 x 1, 4 x 1, 2 x 3, is 20 episodes
 (10,000 agent steps). The goal chosen is the best survivor; it is evaluated on environment seeds never used here.
 """
