@@ -116,6 +116,11 @@ def test_goal_candidates_probe_sets_and_pairing(smoke_run):
     rows = [row("GIIL-ZS (demo 0)", 0, 40.0), row("GIIL-ZS (demo 0)", 1, 50.0), row("GIIL-online", 0, 45.0), row("GIIL-online", 1, 45.0),
             row("GIIL-online", 0, 50.0, candidates="posterior"), row("GIIL-online", 1, 44.0, candidates="posterior")]
     assert probe.paired(rows).splitlines()[-1] == "| walker | SE-SV run (2 pairs) | 47.0 +- 3.0 | +2.0 +- 8.0 | +2.0 +- 3.0 |"
+    # the scorer table: a scorer that orders the goals as their true score on B does ranks at +1, its reverse at -1
+    b = [[float(k)] * 2 for k in range(10)]
+    same, reverse = [list(range(10))] * 2, [list(range(10))[::-1]] * 2
+    scorer_row = dict(agent="walker", ot_a={"100": same, "200": reverse, "500": same}, true_a=same, true_b=b)
+    assert probe.scorer_table([scorer_row]).splitlines()[-1] == "| walker | 1 | +1.00 | +1.00 | -1.00 | -1.00 | +1.00 | +1.00 | +1.00 |"
 
 
 def test_goal_variance_splits_goal_from_episode_noise():
