@@ -512,8 +512,10 @@ def test_paper_preset_needs_a_gpu_or_allow_cpu_and_sigterm_releases_the_lock(smo
 
 def test_ctrl_c_then_the_same_imitate_command_goes_on_without_duplicates(smoke_run, tmp_path):
     run = copy_run(smoke_run, tmp_path)
-    interrupted = ("import os, runpy, signal, sys, ot_reward\n"  # Ctrl-C in GIIL-FT seed 0's first update
-                   "ot_reward.ot_reward = lambda *a, **k: os.kill(os.getpid(), signal.SIGINT)\n"
+    # Ctrl-C in GIIL-FT seed 0's first update; the sleep holds the call until Python runs the SIGINT handler, which it
+    # may otherwise do only after the call returned None and its caller failed on it
+    interrupted = ("import os, runpy, signal, sys, time, ot_reward\n"
+                   "ot_reward.ot_reward = lambda *a, **k: (os.kill(os.getpid(), signal.SIGINT), time.sleep(60))\n"
                    "sys.argv = ['imitate.py'] + sys.argv[1:]\nrunpy.run_path('imitate.py', run_name='__main__')\n")
     flags = ["--demo", "walker_run", "--finetune", "--preset", "smoke", "--run", run]
     out = subprocess.run([sys.executable, "-c", interrupted] + flags, cwd=ROOT, capture_output=True, text=True)
