@@ -21,13 +21,14 @@ world model, is off: it needs the demonstrator's body), written with this projec
             (policy.rollout, lambda_return, actor_loss, critic_loss) from the batch's posterior states with the
             reward head's r(s_{k+1}).
 Interaction budget: env_steps agent steps per seed (env_steps / episode_steps episodes; each agent step is 2 control
-steps, action repeat), written in every result row. Evaluation, rows and resuming as genrl.py (its plumbing).
+steps, action repeat), written in every result row. Evaluation, rows, resuming and --eval-at (score against budget,
+here in env steps) as genrl.py (its plumbing).
 
     python aime_nob.py --demo stickman_run --view side --run runs/<name> [--seeds 3] [--preset smoke|cpu]
 """
 import copy
 import dataclasses
-import time
+from typing import ClassVar
 
 import numpy as np
 import torch
@@ -59,6 +60,8 @@ class AIMENoBConfig:
     seeds: int = 3  # Sec. 5: baselines run with 3 seeds
     eval_episodes: int = 2  # episodes in the agent's own env per seed
     eval_steps: int = envs.EPISODE_STEPS  # agent steps per evaluation episode
+    eval_at: str = ""  # also evaluate after these env steps, comma-separated whole episodes below --env-steps (ours, as genrl.py)
+    budget_field: ClassVar[str] = "env_steps"
 
     def __post_init__(self):
         rundir.check_flags(self)
@@ -66,6 +69,7 @@ class AIMENoBConfig:
             raise ValueError(f"--env-steps {self.env_steps} is not a multiple of --episode-steps {self.episode_steps}: the budget is whole episodes")
         if self.body_ratio == 1:
             raise ValueError("--body-ratio 1: must be below 1, the rest of each batch is the new episodes, which train the reward")
+        genrl.budgets(self)  # a malformed --eval-at fails here
 
 
 def episode_rewards(p, demo_p, ot_cfg):
@@ -108,8 +112,10 @@ def mixed_batch(body, online, cfgs, ratio, rng, device):
     return batch, n_body, parts[-1]["reward"]
 
 
-def train_seed(cell, nc, body, encoder, demo_p, seed):
-    """AIME-NoB for one seed (module docstring) -> the actor, the world model trained on, and a log of the episodes."""
+def train_seed(cell, nc, body, encoder, demo_p, seed, on_budget=None, resume=None):
+    """AIME-NoB for one seed (module docstring) -> the actor, the world model trained on, and a log of the episodes.
+    on_budget(env_steps, actor, world_model, state) after each budget of genrl.budgets(nc), state() the seed's training
+    state (its episodes too); resume: such a state, to go on from its env steps."""
     torch.manual_seed(seed)
     rng = np.random.default_rng(seed)
     cfgs, device, models = cell["cfgs"], cell["device"], cell["models"]
@@ -126,12 +132,19 @@ def train_seed(cell, nc, body, encoder, demo_p, seed):
     optims = [(opt_wm, wm, wc.grad_clip), (torch.optim.Adam(reward_head.parameters(), lr=wc.lr), reward_head, wc.grad_clip),
               (torch.optim.Adam(actor.parameters(), lr=ac.actor_lr), actor, ac.grad_clip),
               (torch.optim.Adam(critic.parameters(), lr=ac.critic_lr), critic, ac.grad_clip)]
+    parts = {"world_model": wm, "reward_head": reward_head, "actor": actor, "critic": critic, "slow_critic": slow_critic,
+             "return_norm": return_norm, **{f"optim_{i}": opt for i, (opt, _, _) in enumerate(optims)}}
     env = envs.make_env(cfgs["train"].env, cell["task"])
     ot_cfg = ot_reward.OTConfig(**PRESETS["ot"][nc.preset])  # the solver's settings, unit scale: the labels are scaled below
-    goal, episodes, log, scale = genrl.no_goal(1, device), [], [], None
-    n_episodes = nc.env_steps // nc.episode_steps
-    bar = tqdm(total=n_episodes * nc.updates, desc=f"{METHOD} seed {seed} updates ({n_episodes} episodes)", leave=False)
-    for e in range(n_episodes):
+    goal, episodes, log, scale, first = genrl.no_goal(1, device), [], [], None, 0
+    if resume:
+        done, rng = genrl.load_state(parts, resume)
+        first, scale, log = done // nc.episode_steps, resume["scale"], resume["log"]
+        episodes = [{k: v.numpy() for k, v in episode.items()} for episode in resume["episodes"]]
+    state = lambda: {**genrl.save_state(parts, (e + 1) * nc.episode_steps, rng), "episodes": rundir.plain(episodes), "scale": scale, "log": log}
+    n_episodes, marks = nc.env_steps // nc.episode_steps, genrl.budgets(nc)
+    bar = tqdm(total=n_episodes * nc.updates, initial=first * nc.updates, desc=f"{METHOD} seed {seed} updates ({n_episodes} episodes)", leave=False)
+    for e in range(first, n_episodes):
         episode, task_return = collect_episode(env, wm, actor, nc.episode_steps, wc.obs, 10_000 + 1000 * seed + e)
         reward, best = episode_rewards(encoder(episode["pixels"]), demo_p, ot_cfg)
         scale = scale or nc.reward_sum / max(abs(float(reward.sum())), 1e-12)  # ROT: fixed once, on the first episode
@@ -161,38 +174,34 @@ def train_seed(cell, nc, body, encoder, demo_p, seed):
         log.append({"episode": e, "task_return": round(task_return, 2), "ot_sum": round(float(reward.sum() * scale), 3), "best_demo": best,
                     "wm_loss": round(metrics["wm_loss"], 3), "reward_loss": round(reward_loss.item(), 5), "imagined_return": round(a_metrics["return"], 3)})
         bar.set_postfix(episode=e, ot=log[-1]["ot_sum"], task=log[-1]["task_return"])
+        if on_budget and (e + 1) * nc.episode_steps in marks:
+            on_budget((e + 1) * nc.episode_steps, actor, wm, state)
     bar.close()
     env.close()
     return actor, wm, log
 
 
 def run_cell(run_dir, demo, view, nc, data=None):
-    """AIME-NoB on one demo folder for seeds 0..nc.seeds-1, skipping those with a row already -> the new rows."""
+    """AIME-NoB on one demo folder for seeds 0..nc.seeds-1, at each budget of genrl.budgets(nc), skipping what has a row
+    already -> the new rows."""
     cell = genrl.load_cell(run_dir, demo, view, data)
-    config = genrl.result_config(nc)
-    done = {r["seed"] for r in genrl.cell_rows(cell, METHOD, config)}
-    todo = [s for s in range(nc.seeds) if s not in done]
-    rows = []
-    if todo:
-        encoder = load_encoder(cell["cfgs"]["train"].encoder)
-        check_same_encoder(cell["ckpt"]["encoder"], encoder.name, f"{run_dir}/checkpoint.pt and its --encoder {cell['cfgs']['train'].encoder!r}")
-        demos = [d["p"] for d in cell["demos"]]
-        demo_p = torch.as_tensor(np.stack([p[: min(len(q) for q in demos)] for p in demos]), device=cell["device"])  # (K, M, D)
-        body = checkpoint.body_segments(cell["cfgs"]) if round(nc.body_ratio * cell["cfgs"]["wm"].batch) else None
-    for seed in todo:
-        t0 = time.time()
-        actor, wm, _ = train_seed(cell, nc, body, encoder, demo_p, seed)
-        scores = genrl.evaluate_actor(cell, wm, actor, nc.eval_episodes, nc.eval_steps, seed)
-        rows.append(genrl.append_row(cell, METHOD, seed, scores, time.time() - t0, config, env_steps=nc.env_steps))
-    genrl.report(cell, METHOD, config, len(todo))
-    return rows
+    inputs = {}
+
+    def train(seed, on_budget, resume):
+        if not inputs:  # once per cell, and only when a seed runs
+            inputs["encoder"] = load_encoder(cell["cfgs"]["train"].encoder)
+            check_same_encoder(cell["ckpt"]["encoder"], inputs["encoder"].name, f"{run_dir}/checkpoint.pt and its --encoder {cell['cfgs']['train'].encoder!r}")
+            demos = [d["p"] for d in cell["demos"]]
+            inputs["demo_p"] = torch.as_tensor(np.stack([p[: min(len(q) for q in demos)] for p in demos]), device=cell["device"])  # (K, M, D)
+            inputs["body"] = checkpoint.body_segments(cell["cfgs"]) if round(nc.body_ratio * cell["cfgs"]["wm"].batch) else None
+        train_seed(cell, nc, inputs["body"], inputs["encoder"], inputs["demo_p"], seed, on_budget, resume)
+
+    return genrl.run_seeds(cell, METHOD, nc, train, env_steps="budget")
 
 
 def main():
-    args = genrl.cell_parser("Baseline AIME-NoB (AIME loss off): online imitation with an OT reward on video features, world model learning on.",
-                             AIMENoBConfig, PRESETS["aime_nob"]).parse_args()
-    rundir.use_threads(args.threads)
-    run_cell(args.run, args.demo, args.view, genrl.config_from_args(AIMENoBConfig, PRESETS["aime_nob"], args), args.data)
+    genrl.run_cells(genrl.cell_parser("Baseline AIME-NoB (AIME loss off): online imitation with an OT reward on video features, world "
+                                      "model learning on.", AIMENoBConfig, PRESETS["aime_nob"]), run_cell, METHOD, AIMENoBConfig, PRESETS["aime_nob"])
 
 
 if __name__ == "__main__":

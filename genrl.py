@@ -24,14 +24,25 @@ GenRL's recipe, written with this project's models (world_model.py, goal_vae.py,
 Evaluation: the trained actor in the agent's own environment with the task's true reward, Eq. 8's normalised
 score, eval_episodes episodes per seed; one row per seed appended to runs/<name>/results.jsonl (imitate.py's format).
 A rerun skips the seeds that already have a row for the same demos and settings. The plumbing of a per-cell
-baseline run (load_cell, evaluate_actor, cell_rows, append_row, the config flags) lives here and aime_nob.py uses it.
+baseline run (load_cell, run_seeds, evaluate_actor, cell_rows, append_row, the config flags) lives here and
+aime_nob.py uses it.
+
+Score against budget (ours, for the baselines' curves): --eval-at 1000,2000 also evaluates each seed after 1000 and
+2000 of its --steps updates. Such a row is the row a run of that budget writes, bit for bit (the evaluation leaves
+the training's random state as it was; tests/test_genrl.py), and counts as one. After each budget the seed's training
+state is saved (runs/<name>/baselines/), so a killed seed goes on from its last budget, and a longer --steps later goes
+on from the longest one instead of from update 0.
 
     python genrl.py --demo stickman_run --view side --run runs/<name> [--seeds 3] [--preset smoke|cpu]
+    python genrl.py --settings SE-SV,SE-CV --run runs/<name> --steps 4000 --eval-at 1000,2000 [--shard 0/2]
 """
 import argparse
 import dataclasses
+import hashlib
+import json
 import os
 import time
+from typing import ClassVar
 
 import numpy as np
 import torch
@@ -61,9 +72,12 @@ class GenRLConfig:
     seeds: int = 3  # Sec. 5: baselines run with 3 seeds
     eval_episodes: int = 2  # episodes in the agent's own env per seed
     eval_steps: int = envs.EPISODE_STEPS  # agent steps per evaluation episode
+    eval_at: str = ""  # also evaluate after these updates, comma-separated, each below --steps (ours: the score against budget)
+    budget_field: ClassVar[str] = "steps"  # the field a budget of eval_at counts in
 
     def __post_init__(self):
         rundir.check_flags(self)
+        budgets(self)  # a malformed --eval-at fails here, before anything runs
         if self.align_window > self.target_len:
             raise ValueError(f"--align-window {self.align_window} is longer than --target-len {self.target_len}: pass a window <= the target")
 
@@ -89,9 +103,12 @@ def aligned_reward(agent, target, window):
     if window > H:
         raise ValueError(f"--align-window {window} is longer than the run's imagination horizon {H}: pass a window <= {H}")
     assert target.shape == (L, D) and window <= L, (agent.shape, target.shape, window)
-    with torch.no_grad():
-        windows = agent.unfold(1, window, 1).transpose(-1, -2)  # (N, H - k + 1, k, D): s_{t+1..t+k} for t = 0..H-k
-        offset = similarity(windows, target[:window]).mean(-1).argmax(-1)  # (N,) t*
+    with torch.no_grad():  # sim(s_{t+j}, s*_j) of every window t and step j, read off one (N, H, k) matrix of all pairs
+        # (a matmul: 1 ms where gathering the (N, H - k + 1, k, D) windows took 12, ~10% of an update; bench.py --only baselines)
+        first = target[:window]
+        pairs = (agent @ first.T) / torch.maximum(agent.norm(dim=-1)[..., None], first.norm(dim=-1)).clamp(min=1e-8) ** 2  # (N, H, k)
+        t, j = torch.arange(H - window + 1, device=agent.device)[:, None], torch.arange(window, device=agent.device)
+        offset = pairs[:, t + j, j].mean(-1).argmax(-1)  # (N,) t*
     index = (torch.arange(H, device=agent.device) - offset[:, None]).clamp(0, L - 1)  # (N, H) i(j)
     return similarity(agent, target[index]), offset
 
@@ -111,9 +128,10 @@ def no_goal(n, device):
     return torch.zeros(n, 1, device=device)
 
 
-def train_policy(models, cfgs, gc, target, segments, seed, device):
+def train_policy(models, cfgs, gc, target, segments, seed, device, on_budget=None, resume=None):
     """GenRL's task behaviour for one seed: gc.steps actor-critic updates in imagination from D_body segments
-    (collect.Segments) -> the actor."""
+    (collect.Segments) -> the actor. on_budget(updates, actor, world_model, state) after each budget of budgets(gc),
+    state() the seed's training state; resume: such a state, to go on from its updates."""
     torch.manual_seed(seed)
     rng = np.random.default_rng(seed)
     ac, wc, wm = cfgs["ac"], cfgs["wm"], models["world_model"]
@@ -121,9 +139,16 @@ def train_policy(models, cfgs, gc, target, segments, seed, device):
     critic, slow_critic = (m.to(device) for m in policy.make_critics(ac, wm.feat_dim, 0))
     return_norm = policy.ReturnNorm(ac.return_norm_decay).to(device)
     optims = [torch.optim.Adam(actor.parameters(), lr=ac.actor_lr), torch.optim.Adam(critic.parameters(), lr=ac.critic_lr)]
+    parts = {"actor": actor, "critic": critic, "slow_critic": slow_critic, "return_norm": return_norm, "optim_actor": optims[0],
+             "optim_critic": optims[1]}
+    first = 0
+    if resume:
+        first, rng = load_state(parts, resume)
+    state = lambda: save_state(parts, step + 1, rng)
     stop = lambda: f"no row is written for seed {seed} (the run's --ac-actor-lr {ac.actor_lr}, --ac-critic-lr {ac.critic_lr} too high here?)"
     goal = no_goal(1, device)
-    bar = tqdm(range(gc.steps), desc=f"{METHOD} seed {seed}", leave=False)
+    marks = budgets(gc)
+    bar = tqdm(range(first, gc.steps), desc=f"{METHOD} seed {seed}", leave=False, initial=first, total=gc.steps)
     for step in bar:
         batch = segments.sample(wc.batch, rng, device)
         with torch.no_grad():
@@ -140,27 +165,25 @@ def train_policy(models, cfgs, gc, target, segments, seed, device):
             checkpoint.checked_step(opt, loss, f"{METHOD} seed {seed}: the {what}", step, stop, ac.grad_clip)
         policy.ema_update(slow_critic, critic, ac.slow_critic_rate)
         bar.set_postfix(sim=f"{reward.mean().item():.3f}", ret=f"{metrics['return']:.2f}")
+        if on_budget and step + 1 in marks:
+            on_budget(step + 1, actor, wm, state)
     return actor
 
 
 def run_cell(run_dir, demo, view, gc, data=None):
-    """GenRL on one demo folder for seeds 0..gc.seeds-1, skipping those with a row already -> the new rows."""
+    """GenRL on one demo folder for seeds 0..gc.seeds-1, at each budget of budgets(gc), skipping what has a row already
+    -> the new rows."""
     cell = load_cell(run_dir, demo, view, data)
-    config = result_config(gc)
-    done = {r["seed"] for r in cell_rows(cell, METHOD, config)}
-    todo = [s for s in range(gc.seeds) if s not in done]
     models, cfgs, device = cell["models"], cell["cfgs"], cell["device"]
-    rows = []
-    if todo:
-        target = target_states(models, torch.as_tensor(cell["demos"][0]["p"], device=device), gc.target_len)
-        segments = checkpoint.body_segments(cfgs)
-    for seed in todo:
-        t0 = time.time()
-        actor = train_policy(models, cfgs, gc, target, segments, seed, device)
-        scores = evaluate_actor(cell, models["world_model"], actor, gc.eval_episodes, gc.eval_steps, seed)
-        rows.append(append_row(cell, METHOD, seed, scores, time.time() - t0, config))
-    report(cell, METHOD, config, len(todo))
-    return rows
+    inputs = {}
+
+    def train(seed, on_budget, resume):
+        if not inputs:  # once per cell, and only when a seed runs
+            inputs["target"] = target_states(models, torch.as_tensor(cell["demos"][0]["p"], device=device), gc.target_len)
+            inputs["segments"] = checkpoint.body_segments(cfgs)
+        train_policy(models, cfgs, gc, inputs["target"], inputs["segments"], seed, device, on_budget, resume)
+
+    return run_seeds(cell, METHOD, gc, train)
 
 
 # --- per-cell plumbing of the baselines (also used by aime_nob.py) ---
@@ -198,9 +221,82 @@ def evaluate_actor(cell, world_model, actor, episodes, steps, seed):
     return [evaluate.episode_score(task, r, steps) for r in returns]
 
 
-def result_config(cfg):
-    """The config fields a result depends on: all but the number of seeds."""
-    return {k: v for k, v in dataclasses.asdict(cfg).items() if k != "seeds"}
+def budgets(cfg):
+    """The budgets a seed is evaluated at, ascending: those of cfg.eval_at and the whole cfg.<budget_field>."""
+    final, flag = getattr(cfg, cfg.budget_field), "--" + cfg.budget_field.replace("_", "-")
+    try:
+        marks = sorted({int(b) for b in cfg.eval_at.split(",") if b.strip()})
+    except ValueError:
+        raise ValueError(f"--eval-at {cfg.eval_at!r}: pass budgets as comma-separated integers, e.g. 1000,2000") from None
+    bad = [b for b in marks if not 0 < b < final or b % getattr(cfg, "episode_steps", 1)]
+    if bad:
+        whole = f", whole episodes of --episode-steps {cfg.episode_steps}" if hasattr(cfg, "episode_steps") else ""
+        raise ValueError(f"--eval-at {bad[0]}: each budget must be between 0 and {flag} {final}{whole}")
+    return marks + [final]
+
+
+def result_config(cfg, budget=None):
+    """The config fields a result depends on: all but the number of seeds and eval_at; with `budget`, those of a run
+    of that budget (what its row at that budget carries)."""
+    out = {k: v for k, v in dataclasses.asdict(cfg).items() if k not in ("seeds", "eval_at")}
+    return out if budget is None else {**out, cfg.budget_field: budget}
+
+
+def save_state(parts, done, rng):
+    """A seed's training state after `done` updates (or episodes): the state dicts of `parts` (modules, optimisers),
+    the random states, as torch.load(weights_only=True) reads them."""
+    return {"done": done, **{k: v.state_dict() for k, v in parts.items()}, "torch_rng": torch.get_rng_state(),
+            "rng": rng.bit_generator.state}
+
+
+def load_state(parts, state):
+    """save_state's state into `parts` and the torch random state -> (done, the numpy generator)."""
+    for k, v in parts.items():
+        v.load_state_dict(state[k])
+    torch.set_rng_state(state["torch_rng"])
+    return state["done"], rundir.generator(state["rng"])
+
+
+def state_path(cell, method, cfg, seed):
+    """Where a seed's training state goes after each budget: one file per cell, seed and settings but the budget, so
+    that a longer budget goes on from it."""
+    key = hashlib.sha1(json.dumps({**result_config(cfg, 0), "demo_returns": cell["demo_returns"]}, sort_keys=True).encode()).hexdigest()[:10]
+    return os.path.join(cell["run_dir"], "baselines", f"{method}_{cell['demo']}_{cell['view']}_s{seed}_{key}.pt")
+
+
+def run_seeds(cell, method, cfg, train, **extra):
+    """Seeds 0..cfg.seeds-1 of a baseline on one cell, each evaluated at budgets(cfg) -> the new rows.
+    train(seed, on_budget, resume) trains one seed and calls on_budget(budget, actor, world_model, state) at each
+    budget; resume is the state saved at the seed's longest budget, when every missing row is beyond it. A row's time
+    is that of a run of its budget alone: training up to it and its own evaluation (not the earlier evaluations)."""
+    marks = budgets(cfg)
+    configs = {b: result_config(cfg, b) for b in marks}
+    have = {b: {r["seed"] for r in cell_rows(cell, method, configs[b])} for b in marks}
+    rows = []
+    for seed in range(cfg.seeds):
+        missing = [b for b in marks if seed not in have[b]]
+        if not missing:
+            continue
+        path = state_path(cell, method, cfg, seed)
+        resume = rundir.load_checkpoint(path, cell["device"]) if os.path.exists(path) else None
+        if resume and resume["done"] >= min(missing):  # a row is missing at or below it: the seed runs from the start
+            resume = None
+        clock = {"start": time.time() - (resume["seconds"] if resume else 0.0), "evaluating": 0.0}
+
+        def on_budget(budget, actor, world_model, state):
+            seconds = time.time() - clock["start"] - clock["evaluating"]  # training so far
+            if seed not in have[budget]:
+                t0 = time.time()
+                with torch.random.fork_rng(devices=[]):  # run_episodes seeds torch: the training's draws go on as without it
+                    scores = evaluate_actor(cell, world_model, actor, cfg.eval_episodes, cfg.eval_steps, seed)
+                clock["evaluating"] += time.time() - t0
+                extras = {k: budget if v == "budget" else v for k, v in extra.items()}
+                rows.append(append_row(cell, method, seed, scores, seconds + time.time() - t0, configs[budget], **extras))
+            rundir.atomic_write(path, lambda f: torch.save({**state(), "seconds": seconds}, f))
+
+        train(seed, on_budget, resume)
+    report(cell, method, configs[marks[-1]], len(rows))
+    return rows
 
 
 def cell_rows(cell, method, config):
@@ -241,8 +337,11 @@ def config_from_args(cls, presets, args):
 
 def cell_parser(description, cls, presets):
     parser = argparse.ArgumentParser(description=description, allow_abbrev=False)
-    parser.add_argument("--demo", required=True, help="<demonstrator body>_<task>, e.g. stickman_run")
-    parser.add_argument("--view", default="side", choices=envs.VIEWS, help="camera of the demo")
+    parser.add_argument("--demo", help="<demonstrator body>_<task>, e.g. stickman_run (or --settings)")
+    parser.add_argument("--view", choices=envs.VIEWS, help="camera of the demo (default side)")
+    parser.add_argument("--settings", help="instead of --demo: every cell of these settings for the run's agent (4 tasks each), "
+                        "comma-separated, e.g. SE-SV,SE-CV")
+    parser.add_argument("--shard", metavar="I/N", help="with --settings: only its cells I, I + N, ... (N processes on one run)")
     parser.add_argument("--run", default=checkpoint.default_run_dir("walker", "cpu"), help="the phase-1 run (train.py) whose world model is used")
     parser.add_argument("--data", default=None, help="data folder with demos/ and D_body (default: the run's)")
     rundir.threads_flag(parser)
@@ -250,11 +349,34 @@ def cell_parser(description, cls, presets):
     return parser
 
 
-def main():
-    args = cell_parser("Baseline GenRL: a task policy in the frozen world model's imagination, rewarded by latent similarity to a demo.",
-                       GenRLConfig, PRESETS["genrl"]).parse_args()
+def run_cells(parser, run_cell, method, cls, presets):
+    """A baseline's command: --demo (one cell) or --settings (each of their cells, one process at a time per cell: a
+    second process, or another --shard, skips a cell whose lock file a live process holds)."""
+    args = parser.parse_args()
     rundir.use_threads(args.threads)
-    run_cell(args.run, args.demo, args.view, config_from_args(GenRLConfig, PRESETS["genrl"], args), args.data)
+    if bool(args.demo) == bool(args.settings):
+        parser.error("pass --demo NAME (one cell) or --settings SE-SV,... (their cells), not both")
+    if args.settings and args.view:
+        parser.error("--view does nothing with --settings (a setting names the view): drop it")
+    if args.shard and not args.settings:
+        parser.error("--shard works with --settings only: add --settings, or drop it")
+    cfg = config_from_args(cls, presets, args)  # a bad value: ValueError, one line (rundir.run_main)
+    if args.demo:
+        return run_cell(args.run, args.demo, args.view or "side", cfg, args.data)
+    settings, shard = tables.parse_settings(args.settings), tables.parse_shard(args.shard)
+    agent = checkpoint.load_run(args.run)[0]["train"].env
+    for task, where in [c for c in tables.cells(agent) if c[1] in settings][shard[0]::shard[1]]:
+        demo, view = tables.demo_of(agent, task, where)
+        with rundir.claim(os.path.join(args.run, "baselines", f"{method}_{demo}_{view}.lock")) as other:
+            if other:
+                print(f"{demo} ({view} view): process {other} is running {method} on this cell now: skipped here")
+            else:
+                run_cell(args.run, demo, view, cfg, args.data)
+
+
+def main():
+    run_cells(cell_parser("Baseline GenRL: a task policy in the frozen world model's imagination, rewarded by latent similarity to a demo.",
+                          GenRLConfig, PRESETS["genrl"]), run_cell, METHOD, GenRLConfig, PRESETS["genrl"])
 
 
 if __name__ == "__main__":

@@ -369,15 +369,10 @@ def main():
     # before anything runs: the run's agent is the body --env names (with --run) and what its folder's name says
     rundir.run_checkpoint(run, env=args.env)
     if args.table:
-        settings = (args.settings or ",".join(envs.SETTINGS)).split(",")
-        unknown = [w for w in settings if w not in envs.SETTINGS]
-        if unknown:
-            parser.error(f"unknown setting(s) {', '.join(unknown)}: choose from {', '.join(envs.SETTINGS)}")
         try:
-            shard = tuple(int(x) for x in (args.shard or "0/1").split("/"))
-            assert len(shard) == 2 and 0 <= shard[0] < shard[1]
-        except (ValueError, AssertionError):
-            parser.error(f"--shard {args.shard}: pass I/N with 0 <= I < N, e.g. 0/4")
+            settings, shard = tables.parse_settings(args.settings or ",".join(envs.SETTINGS)), tables.parse_shard(args.shard)
+        except ValueError as error:
+            parser.error(str(error))
         table(run, ic, settings, shard=shard, methods=(args.methods or "giil").split(","), oc=oc)
     elif args.demo:
         view, lock = args.view or "side", tables.cell_lock(run, args.demo, args.view or "side")

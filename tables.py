@@ -2,7 +2,13 @@
 `--methods` the baselines GenRL and AIME-NoB, ours beside the paper's. The rows of runs/<name>/results.jsonl, which of
 them count for a cell, and the markdown of runs/<name>/tables.md; `python imitate.py --table [--methods
 giil,genrl,aime-nob]` runs the cells missing (imitate.table) and writes it.
+
+Score against compute (ours): every method's score against the minutes one seed took, the baselines at each budget
+they were run at (genrl.py / aime_nob.py --eval-at), from rows of any results.jsonl:
+
+    python tables.py --curves runs/<name>/results.jsonl [docs/results/*.jsonl] --png docs/curves_<agent>.png
 """
+import argparse
 import dataclasses
 import json
 import os
@@ -47,11 +53,11 @@ def demo_of(agent, task, where):
     return f"{agent if where.startswith('SE') else other}_{task}", "side" if where.endswith("SV") else "diagonal"
 
 
-def load_results(run_dir):
+def load_results(run_dir, name="results.jsonl"):
     """The latest row per (demo, view, method, seed, demos' returns, settings) of runs/<name>/results.jsonl: a rerun
     replaces its own earlier result, never one made with other demos or settings."""
     rows = {}
-    for r in rundir.read_jsonl(os.path.join(run_dir, "results.jsonl")):
+    for r in rundir.read_jsonl(os.path.join(run_dir, name)):
         rows[(r["demo"], r["view"], r["method"], r["seed"], json.dumps(r.get("demo_returns")), json.dumps(r.get("config")))] = r
     return list(rows.values())
 
@@ -78,6 +84,25 @@ def finished(rows, demo, view, returns, configs):
 def cell_lock(run_dir, demo, view):
     """The lock file of a cell while a process runs it (rundir.claim; imitate.table, imitate.py --demo)."""
     return os.path.join(run_dir, "imitate", f"{demo}_{view}.lock")
+
+
+def parse_shard(text):
+    """--shard I/N -> (I, N); None: (0, 1), the whole."""
+    try:
+        shard = tuple(int(x) for x in (text or "0/1").split("/"))
+        assert len(shard) == 2 and 0 <= shard[0] < shard[1]
+    except (ValueError, AssertionError):
+        raise ValueError(f"--shard {text}: pass I/N with 0 <= I < N, e.g. 0/4") from None
+    return shard
+
+
+def parse_settings(text):
+    """--settings SE-SV,CE-CV -> the list; an unknown one names the valid ones."""
+    settings = text.split(",")
+    unknown = [w for w in settings if w not in SETTINGS]
+    if unknown:
+        raise ValueError(f"unknown setting(s) {', '.join(unknown)}: choose from {', '.join(SETTINGS)}")
+    return settings
 
 
 def cells(agent):
@@ -112,3 +137,96 @@ def markdown_tables(agent, rows):
                        + " | ".join(cell(g) for g in gains) + " | " + " | ".join(f"{p:.2f}" for p in paper) + " |")
         out.append("")
     return "\n".join(out)
+
+
+BUDGET = {"GenRL": ("steps", "updates"), "AIME-NoB": ("env_steps", "env steps")}  # a baseline's budget: its config field, its unit
+
+
+def curve_points(rows, settings):
+    """{method: {budget: [(cell, seed, score, seconds)]}} of the rows of `settings`; GIIL's methods have one budget,
+    None. A baseline's rows at a budget are those whose config has that budget (a run of it, or an --eval-at point)."""
+    out = {}
+    for r in rows:
+        if r["setting"] not in settings or r["method"] not in METHODS + (ONLINE, *BASELINES.values()):
+            continue
+        budget = r["config"][BUDGET[r["method"]][0]] if r["method"] in BUDGET else None
+        out.setdefault(r["method"], {}).setdefault(budget, []).append(((r["demo"], r["view"]), r["seed"], r["score"], r["time"]))
+    return out
+
+
+def curve(points, seeds):
+    """A method's curve: [(budget, scores, seconds)] over the cells with >= `seeds` seeds at its smallest budget, at
+    each budget where all of them have >= `seeds` (so every point is a mean over the same cells), and those cells."""
+    complete = lambda p: {c for c, _, _, _ in p if sum(c == d for d, _, _, _ in p) >= seeds}
+    budgets = sorted(points, key=lambda b: b or 0)
+    cells, out = complete(points[budgets[0]]), []
+    for budget in budgets:
+        if cells and cells <= complete(points[budget]):
+            out.append((budget, *zip(*[(score, seconds) for c, _, score, seconds in points[budget] if c in cells])))
+    return out, cells
+
+
+def markdown_curves(agent, rows, settings, seeds=3):
+    """One line per method and budget: the score over the complete cells (mean +- s.e. over cells x seeds), the cells,
+    the minutes per seed, and the paper's score of the method over the same settings."""
+    out = [f"### {agent}: score against budget, {' + '.join(settings)} cells", "",
+           "| method | budget | score | cells x seeds | minutes per seed | paper |", "|---|---|---|---|---|---|"]
+    for method, points in sorted(curve_points(rows, settings).items()):
+        paper = (f"{np.mean([PAPER[agent]['all'][SETTINGS.index(w)][PAPER_METHODS.index(method)] for w in settings]):.1f}"
+                 if method in PAPER_METHODS else "-")
+        line, cells = curve(points, 1 if method.startswith("GIIL") else seeds)
+        for budget, scores, seconds in line:
+            out.append(f"| {method} | {f'{budget} {BUDGET[method][1]}' if budget else '-'} | {np.mean(scores):.1f} +- "
+                       f"{evaluate.stderr(scores):.1f} | {len(cells)} x {len(scores) / len(cells):.0f} | {np.mean(seconds) / 60:.1f} | {paper} |")
+    return "\n".join(out) + "\n"
+
+
+def plot_curves(agent, rows, settings, path, seeds=3):
+    """The PNG of markdown_curves: score against minutes per seed (log scale), one line per method, the paper's scores
+    dashed in the method's colour."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(6.5, 4))
+    for method, points in sorted(curve_points(rows, settings).items()):
+        line, cells = curve(points, 1 if method.startswith("GIIL") else seeds)
+        if not line:
+            continue
+        xy = [(np.mean(seconds) / 60, np.mean(scores), evaluate.stderr(scores)) for _, scores, seconds in line]
+        x, y, e = zip(*xy)
+        line = ax.errorbar(x, y, yerr=e, marker="o", capsize=3, label=f"{method} ({len(cells)} cells)")
+        if method in PAPER_METHODS:
+            paper = np.mean([PAPER[agent]["all"][SETTINGS.index(w)][PAPER_METHODS.index(method)] for w in settings])
+            ax.axhline(paper, ls="--", lw=1, color=line[0].get_color())
+    ax.set_xscale("log")
+    ax.set_xlabel("minutes per seed (one process per core, 2-core CPU)")
+    ax.set_ylabel("normalised score (Eq. 8)")
+    ax.set_title(f"{agent}, {' + '.join(settings)} cells; dashed: the paper's", fontsize=10)
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    rundir.atomic_write(path, lambda name: fig.savefig(name, dpi=90), by_name=True)
+    plt.close(fig)
+
+
+def main():
+    parser = argparse.ArgumentParser(description="Score against compute of every method, from result rows (docs/results.md).", allow_abbrev=False)
+    parser.add_argument("--curves", nargs="+", required=True, metavar="ROWS", help="results.jsonl files of one agent")
+    parser.add_argument("--settings", default="SE-SV,SE-CV", help="the settings averaged (default the same-body ones)")
+    parser.add_argument("--seeds", type=int, default=3, help="a baseline's cell counts with this many seeds at each budget")
+    parser.add_argument("--png", help="also draw the figure here")
+    args = parser.parse_args()
+    rows = [r for path in args.curves for r in load_results(os.path.dirname(path) or ".", os.path.basename(path))]
+    agents = {r["agent"] for r in rows}
+    if len(agents) != 1:
+        raise ValueError(f"the rows are of agents {sorted(agents)}: pass one agent's files")
+    settings, agent = parse_settings(args.settings), agents.pop()
+    print(markdown_curves(agent, rows, settings, args.seeds))
+    if args.png:
+        plot_curves(agent, rows, settings, args.png, args.seeds)
+        print(f"wrote {args.png}")
+
+
+if __name__ == "__main__":
+    rundir.run_main(main, "nothing is written but the figure")

@@ -1,5 +1,6 @@
 """aime_nob.py: the episode's OT reward on hand-made cases, one seed's online loop, the command end to end."""
 import dataclasses
+import glob
 import json
 import os
 import shutil
@@ -85,3 +86,38 @@ def test_command_line(smoke_run, tmp_path):
     assert "AIME-NoB walker imitating walker_run (diagonal view, SE-CV): normalised score" in out.stdout
     out = subprocess.run(command + ["--env-steps", "25"], cwd=ROOT, capture_output=True, text=True)
     assert out.returncode == 1 and out.stderr.strip() == "error: --env-steps 25 is not a multiple of --episode-steps 10: the budget is whole episodes"
+
+
+def test_budget_rows_and_a_killed_seed_going_on(smoke_run, tmp_path, monkeypatch):
+    """--env-steps 30 --eval-at 10: the row at 10 is a 10-step run's; a seed killed after 20 goes on from its saved
+    state (episodes, scale, world model) to the same row at 30 as a seed never killed."""
+    runs = {}
+    for name in ("curve", "ten", "killed"):
+        runs[name] = str(tmp_path / name)
+        shutil.copytree(smoke_run, runs[name], ignore=shutil.ignore_patterns("results.jsonl", "baselines"))
+    cfg = dataclasses.replace(SMOKE, env_steps=30, eval_at="10,20", seeds=1)
+    rows = aime_nob.run_cell(runs["curve"], "walker_stand", "side", cfg)
+    assert [(r["env_steps"], r["config"]["env_steps"]) for r in rows] == [(10, 10), (20, 20), (30, 30)]
+    alone = aime_nob.run_cell(runs["ten"], "walker_stand", "side", dataclasses.replace(cfg, env_steps=10, eval_at=""))[0]
+    assert alone["config"] == rows[0]["config"] and alone["episode_scores"] == rows[0]["episode_scores"]
+    evaluate_actor, calls = genrl.evaluate_actor, []
+
+    def killed_at_the_third(*args):
+        calls.append(1)
+        if len(calls) == 3:
+            raise KeyboardInterrupt
+        return evaluate_actor(*args)
+
+    monkeypatch.setattr(genrl, "evaluate_actor", killed_at_the_third)
+    with pytest.raises(KeyboardInterrupt):
+        aime_nob.run_cell(runs["killed"], "walker_stand", "side", cfg)
+    episodes = []
+    monkeypatch.setattr(aime_nob, "collect_episode", lambda *a, _c=aime_nob.collect_episode: episodes.append(1) or _c(*a))
+    last = aime_nob.run_cell(runs["killed"], "walker_stand", "side", cfg)
+    assert len(episodes) == 1 and [r["env_steps"] for r in last] == [30]  # the third episode only
+    assert last[0]["episode_scores"] == rows[2]["episode_scores"]
+    states = [torch.load(glob.glob(os.path.join(runs[n], "baselines", "*.pt"))[0], weights_only=True) for n in ("curve", "killed")]
+    assert all(torch.equal(v, states[1]["world_model"][k]) for k, v in states[0]["world_model"].items())
+    assert states[0]["log"] == states[1]["log"] and states[0]["done"] == 30
+    with pytest.raises(ValueError, match=r"--eval-at 15: each budget must be between 0 and --env-steps 30, whole episodes of --episode-steps 10"):
+        dataclasses.replace(cfg, eval_at="15")

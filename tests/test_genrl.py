@@ -43,6 +43,15 @@ def test_time_shifted_copy_is_matched_by_the_alignment():
     assert offsets.tolist() == [0, 3] and torch.allclose(both, torch.ones(2, 10))
 
 
+def test_offsets_are_those_of_the_windows_written_out():
+    """t* = argmax_t mean_j sim(s_{t+1+j}, s*_j), each window compared step by step."""
+    torch.manual_seed(2)
+    agent, target = torch.randn(64, 15, 32), torch.randn(15, 32)
+    _, offset = genrl.aligned_reward(agent, target, 8)
+    means = torch.stack([torch.stack([genrl.similarity(agent[:, t + j], target[j]) for j in range(8)]).mean(0) for t in range(8)], -1)
+    assert torch.equal(offset, means.argmax(-1)) and len(set(offset.tolist())) > 3
+
+
 def test_reward_is_differentiable_in_the_imagined_states():
     target = torch.randn(6, 5)
     agent = torch.randn(2, 6, 5, requires_grad=True)
@@ -105,3 +114,82 @@ def test_command_line(smoke_run, tmp_path):
     assert "GenRL walker imitating walker_stand (side view, SE-SV): normalised score" in out.stdout and "over 1 seeds" in out.stdout
     out = subprocess.run(command + ["--demo", "walker_fly"], cwd=ROOT, capture_output=True, text=True)
     assert out.returncode == 1 and out.stderr.strip().startswith("error: unknown demo 'walker_fly'") and "Traceback" not in out.stderr
+
+
+def _copy(smoke_run, tmp_path, name):
+    run = str(tmp_path / name)
+    shutil.copytree(smoke_run, run, ignore=shutil.ignore_patterns("results.jsonl", "baselines"))
+    return run
+
+
+def _state(run, cfg, seed=0):
+    cell = {"run_dir": run, "demo": "walker_walk", "view": "side", "demo_returns": genrl.load_cell(run, "walker_walk", "side")["demo_returns"]}
+    return torch.load(genrl.state_path(cell, "GenRL", cfg, seed), weights_only=True)
+
+
+def test_a_budget_row_is_the_row_of_a_run_of_that_budget(smoke_run, tmp_path):
+    """--steps 4 --eval-at 2: the row at 2 equals a 2-update run's, and the training after the evaluation goes on exactly
+    as a 4-update run without one (the evaluation seeds torch; its random state is restored)."""
+    curve, two, four = (_copy(smoke_run, tmp_path, n) for n in ("curve", "two", "four"))
+    cfg = dataclasses.replace(SMOKE, steps=4, eval_at="2", seeds=1)
+    rows = genrl.run_cell(curve, "walker_walk", "side", cfg)
+    assert [r["config"]["steps"] for r in rows] == [2, 4] and all("eval_at" not in r["config"] for r in rows)
+    alone = genrl.run_cell(two, "walker_walk", "side", dataclasses.replace(cfg, steps=2, eval_at=""))[0]
+    assert alone["config"] == rows[0]["config"] and alone["episode_scores"] == rows[0]["episode_scores"]
+    genrl.run_cell(four, "walker_walk", "side", dataclasses.replace(cfg, eval_at=""))
+    a, b = _state(curve, cfg)["actor"], _state(four, cfg)["actor"]
+    assert all(torch.equal(a[k], b[k]) for k in a)
+    # the 2-update run's saved state is where a 4-update run goes on from: its row at 4 equals the curve's
+    more = genrl.run_cell(two, "walker_walk", "side", dataclasses.replace(cfg, eval_at=""))
+    assert [r["config"]["steps"] for r in more] == [4] and more[0]["episode_scores"] == rows[1]["episode_scores"]
+    c = _state(two, cfg)["actor"]
+    assert all(torch.equal(a[k], c[k]) for k in a)
+
+
+def test_a_seed_killed_after_a_budget_goes_on_from_it(smoke_run, tmp_path, monkeypatch):
+    run, whole = _copy(smoke_run, tmp_path, "run"), _copy(smoke_run, tmp_path, "whole")
+    cfg = dataclasses.replace(SMOKE, steps=4, eval_at="1,2", seeds=1)
+    evaluate_actor, calls = genrl.evaluate_actor, []
+
+    def killed_at_the_third(*args):
+        calls.append(1)
+        if len(calls) == 3:
+            raise KeyboardInterrupt
+        return evaluate_actor(*args)
+
+    monkeypatch.setattr(genrl, "evaluate_actor", killed_at_the_third)
+    with pytest.raises(KeyboardInterrupt):
+        genrl.run_cell(run, "walker_walk", "side", cfg)
+    assert _state(run, cfg)["done"] == 2
+    steps = []
+    monkeypatch.setattr(genrl.policy, "rollout", lambda *a, _r=genrl.policy.rollout: steps.append(1) or _r(*a))
+    rows = genrl.run_cell(run, "walker_walk", "side", cfg)
+    assert [r["config"]["steps"] for r in rows] == [4] and len(steps) == 2  # updates 3 and 4 only
+    monkeypatch.setattr(genrl, "evaluate_actor", evaluate_actor)
+    assert genrl.run_cell(whole, "walker_walk", "side", cfg)[-1]["episode_scores"] == rows[0]["episode_scores"]
+    a, b = _state(run, cfg)["actor"], _state(whole, cfg)["actor"]
+    assert all(torch.equal(a[k], b[k]) for k in a)
+    written = [json.loads(line)["config"]["steps"] for line in open(os.path.join(run, "results.jsonl"))]
+    assert written == [1, 2, 4]  # nothing twice
+
+
+def test_bad_budgets_name_the_flag_and_the_fix():
+    with pytest.raises(ValueError, match=r"--eval-at 1000: each budget must be between 0 and --steps 1000"):
+        genrl.GenRLConfig(eval_at="500,1000")
+    with pytest.raises(ValueError, match=r"--eval-at 'a,b': pass budgets as comma-separated integers, e.g. 1000,2000"):
+        genrl.GenRLConfig(eval_at="a,b")
+    assert genrl.budgets(genrl.GenRLConfig(steps=4000, eval_at="2000, 1000")) == [1000, 2000, 4000]
+
+
+def test_settings_run_each_of_their_cells_once(smoke_run, tmp_path):
+    run = _copy(smoke_run, tmp_path, "run")
+    command = [sys.executable, "genrl.py", "--preset", "smoke", "--seeds", "1", "--steps", "1", "--run", run, "--settings", "SE-SV"]
+    out = [subprocess.Popen(command + ["--shard", f"{i}/2"], cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True) for i in range(2)]
+    for p in out:
+        assert p.wait() == 0, p.stderr.read()[-2000:]
+    rows = [json.loads(line) for line in open(os.path.join(run, "results.jsonl"))]
+    assert sorted(r["demo"] for r in rows) == sorted(f"walker_{t}" for t in genrl.envs.TASKS) and {r["view"] for r in rows} == {"side"}
+    bad = subprocess.run(command + ["--demo", "walker_run"], cwd=ROOT, capture_output=True, text=True)
+    assert bad.returncode == 2 and "pass --demo NAME (one cell) or --settings SE-SV,... (their cells), not both" in bad.stderr
+    bad = subprocess.run(command[:-2] + ["--settings", "SE-XX"], cwd=ROOT, capture_output=True, text=True)
+    assert bad.returncode == 1 and bad.stderr.strip() == "error: unknown setting(s) SE-XX: choose from SE-SV, SE-CV, CE-SV, CE-CV"
