@@ -239,6 +239,32 @@ print((time.perf_counter() - start) / 4)
 """
 
 
+# The baselines' cost, timed in a source tree: seconds per GenRL update (genrl.train_policy) and per AIME-NoB round (one
+# episode collected, encoded and OT-labelled, then its 50 updates: aime_nob.train_seed), the shipped walker on its own
+# side-view walk demos, one thread, after a warm-up
+BASELINE_UPDATE = """
+import dataclasses, sys, time
+import numpy as np, torch
+import aime_nob, checkpoint, genrl
+torch.set_num_threads(1)
+cell = genrl.load_cell(sys.argv[1], "walker_walk", "side")
+models, cfgs, n = cell["models"], cell["cfgs"], int(sys.argv[3])
+if sys.argv[2] == "genrl":
+    gc = genrl.GenRLConfig()
+    target = genrl.target_states(models, torch.as_tensor(cell["demos"][0]["p"]), gc.target_len)
+    segments = checkpoint.body_segments(cfgs)
+    run = lambda k: genrl.train_policy(models, cfgs, dataclasses.replace(gc, steps=k), target, segments, 0, "cpu")
+else:
+    demo_p = torch.as_tensor(np.stack([d["p"] for d in cell["demos"]]))
+    body, encoder = checkpoint.body_segments(cfgs), aime_nob.load_encoder("default")
+    run = lambda k: aime_nob.train_seed(cell, dataclasses.replace(aime_nob.AIMENoBConfig(), env_steps=k * 500), body, encoder, demo_p, 0)
+run(max(1, n // 4))
+start = time.perf_counter()
+run(n)
+print((time.perf_counter() - start) / n)
+"""
+
+
 def in_tree(tree, code, *args):
     """Runs `code` (a script that prints one number) with the source tree `tree` as its working directory -> that number."""
     import subprocess
@@ -303,6 +329,15 @@ def bench_collect(rev=None):
     against(rev, {"collect        D_body episode (500 steps), one core": ("s", False, lambda tree: in_tree(tree, COLLECT_EPISODE))})
 
 
+def bench_baselines(rev=None, run="agents/walker"):
+    """Seconds per GenRL update and per AIME-NoB round (one thread), with --against REV beside that commit's code."""
+    if not os.path.isdir("data/demos/walker_walk_side") or not os.path.isdir("data/walker"):
+        raise SystemExit("bench.py --only baselines reads data/walker and data/demos/walker_walk_side: `python collect.py --env walker --demos`")
+    run = os.path.abspath(run)
+    against(rev, {"GenRL          update (128 starts x 15 steps, aligned reward)": ("s", False, lambda tree: in_tree(tree, BASELINE_UPDATE, run, "genrl", 100)),
+                  "AIME-NoB       round (1 episode, its OT labels, 50 updates)": ("s", False, lambda tree: in_tree(tree, BASELINE_UPDATE, run, "aime", 2))})
+
+
 def ot_seconds(B=256, T=16, M=500, K=10, D=64, repeat=3):
     """Seconds per ot_reward.ot_reward call on one thread, whole-demo and windowed matching (torch's threads restored)."""
     import torch
@@ -334,14 +369,14 @@ def bench_ot():
         print(f"OT reward      B={B} trajectories x T=15 against K=10 demos of M={M} frames (D=512): {1000 * r['whole_demo_s']:.0f} ms (windowed: {1000 * r['window_s']:.0f} ms)")
 
 
-AGAINST = ("phase1", "finetune", "collect")  # the sections that take --against
+AGAINST = ("phase1", "finetune", "collect", "baselines")  # the sections that take --against
 SECTIONS = {"render": bench_render, "features": bench_features, "collect": bench_collect, "components": bench_components, "phase1": bench_phase1, "finetune": bench_finetune,
-            "ot": bench_ot, "gpu": bench_gpu}
+            "baselines": bench_baselines, "ot": bench_ot, "gpu": bench_gpu}
 
 if __name__ == "__main__":
     parser = argparse.ArgumentParser(description=__doc__, allow_abbrev=False)
     parser.add_argument("--only", nargs="+", choices=SECTIONS, default=[s for s in SECTIONS if s != "gpu"], help="default: all but gpu")
-    parser.add_argument("--against", metavar="REV", help="phase1, finetune, collect: also time this git commit's code, in the same run "
+    parser.add_argument("--against", metavar="REV", help="phase1, finetune, collect, baselines: also time this git commit's code, in the same run "
                         "(e.g. 3e0cd69)")
     args = parser.parse_args()
     for name in args.only:
