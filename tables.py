@@ -53,11 +53,16 @@ def demo_of(agent, task, where):
     return f"{agent if where.startswith('SE') else other}_{task}", "side" if where.endswith("SV") else "diagonal"
 
 
-def load_results(run_dir, name="results.jsonl"):
+def load_results(run_dir):
     """The latest row per (demo, view, method, seed, demos' returns, settings) of runs/<name>/results.jsonl: a rerun
     replaces its own earlier result, never one made with other demos or settings."""
+    return latest(rundir.read_jsonl(os.path.join(run_dir, "results.jsonl")))
+
+
+def latest(rows_in):
+    """The last of the rows with the same (demo, view, method, seed, demos' returns, settings) (load_results)."""
     rows = {}
-    for r in rundir.read_jsonl(os.path.join(run_dir, name)):
+    for r in rows_in:
         rows[(r["demo"], r["view"], r["method"], r["seed"], json.dumps(r.get("demo_returns")), json.dumps(r.get("config")))] = r
     return list(rows.values())
 
@@ -217,7 +222,10 @@ def main():
     parser.add_argument("--seeds", type=int, default=3, help="a baseline's cell counts with this many seeds at each budget")
     parser.add_argument("--png", help="also draw the figure here")
     args = parser.parse_args()
-    rows = [r for path in args.curves for r in load_results(os.path.dirname(path) or ".", os.path.basename(path))]
+    missing = [path for path in args.curves if not os.path.isfile(path)]
+    if missing:
+        raise ValueError(f"{missing[0]}: no such file; pass results.jsonl files (runs/<name>/results.jsonl, docs/results/*.jsonl)")
+    rows = latest(r for path in args.curves for r in rundir.read_jsonl(path))  # a row in two files counts once
     agents = {r["agent"] for r in rows}
     if len(agents) != 1:
         raise ValueError(f"the rows are of agents {sorted(agents)}: pass one agent's files")

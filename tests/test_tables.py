@@ -3,11 +3,17 @@ import dataclasses
 import json
 import os
 import shutil
+import subprocess
+import sys
+
+import numpy as np
 
 import imitate
 import presets
 import tables
 from conftest import probe_script
+
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
 SMOKE = imitate.ImitateConfig(**presets.PRESETS["imitate"]["smoke"])
 
@@ -146,3 +152,31 @@ def test_ft_pairs_pairs_seeds_of_two_variants(tmp_path):
             f.write("".join(json.dumps(r) + "\n" for r in rows))
     got = [(r["seed"], r["score"], b, zs0) for r, b, zs0 in ft_pairs.pairs(str(tmp_path / "a"), str(tmp_path / "b"))]
     assert got == [(0, 45.0, 50.0, 40.0), (1, 60.0, 51.0, 40.0)]  # walker_run's copied row is no pair
+
+
+def _row(method, demo, seed, score, seconds, setting="SE-SV", **config):
+    return {"agent": "walker", "demo": demo, "view": "side", "task": demo.split("_")[1], "setting": setting, "method": method, "seed": seed,
+            "score": score, "time": seconds, "demo_returns": [1.0], "config": config}
+
+
+def test_curves_average_the_same_cells_at_every_budget(tmp_path):
+    """A budget is shown only where every cell of the smallest budget has its seeds: the walk cell's 4000 (2 seeds) is
+    left out rather than averaging another set of cells."""
+    rows = [_row("GenRL", d, s, score, 60 * b / 1000, steps=b) for d, base in (("walker_walk", 10), ("walker_run", 30))
+            for b, score in ((1000, base), (2000, base + 10)) for s in range(3)]
+    rows += [_row("GenRL", "walker_run", s, 0.0, 240, steps=4000) for s in range(3)] + [_row("GenRL", "walker_walk", s, 0.0, 240, steps=4000) for s in range(2)]
+    rows += [_row("GIIL-ZS", "walker_walk", k, 50.0 + k, 6) for k in range(10)] + [_row("GenRL", "walker_stand", 0, 99.0, 60, steps=1000)]
+    line, cells = tables.curve(tables.curve_points(rows, ["SE-SV"])["GenRL"], 3)
+    assert cells == {("walker_walk", "side"), ("walker_run", "side")}
+    assert [(b, np.mean(s), np.mean(t)) for b, s, t in line] == [(1000, 20.0, 60.0), (2000, 30.0, 120.0)]
+    text = tables.markdown_curves("walker", rows, ["SE-SV"])
+    assert "| GenRL | 2000 updates | 30.0 +- 4.5 | 2 x 3 | 2.0 | 86.0 |" in text and "4000" not in text
+    assert "| GIIL-ZS | - | 54.5 +- 1.0 | 1 x 10 | 0.1 | 42.5 |" in text
+    path = tmp_path / "rows.jsonl"
+    path.write_text("".join(json.dumps(r) + "\n" for r in rows))
+    png = tmp_path / "curves.png"
+    out = subprocess.run([sys.executable, "tables.py", "--curves", str(path), str(path), "--settings", "SE-SV", "--png", str(png)],
+                         cwd=ROOT, capture_output=True, text=True)
+    assert out.returncode == 0 and "| GenRL | 1000 updates | 20.0 +- 4.5 | 2 x 3 |" in out.stdout and png.stat().st_size > 1000  # the file twice: once
+    out = subprocess.run([sys.executable, "tables.py", "--curves", str(tmp_path / "none.jsonl")], cwd=ROOT, capture_output=True, text=True)
+    assert out.returncode == 1 and out.stderr.strip().startswith(f"error: {tmp_path / 'none.jsonl'}: no such file")
