@@ -247,7 +247,7 @@ import dataclasses, sys, time
 import numpy as np, torch
 import aime_nob, checkpoint, genrl
 torch.set_num_threads(1)
-cell = genrl.load_cell(sys.argv[1], "walker_walk", "side")
+cell = genrl.load_cell(sys.argv[1], "walker_walk", "side", sys.argv[4])
 models, cfgs, n = cell["models"], cell["cfgs"], int(sys.argv[3])
 if sys.argv[2] == "genrl":
     gc = genrl.GenRLConfig()
@@ -333,9 +333,9 @@ def bench_baselines(rev=None, run="agents/walker"):
     """Seconds per GenRL update and per AIME-NoB round (one thread), with --against REV beside that commit's code."""
     if not os.path.isdir("data/demos/walker_walk_side") or not os.path.isdir("data/walker"):
         raise SystemExit("bench.py --only baselines reads data/walker and data/demos/walker_walk_side: `python collect.py --env walker --demos`")
-    run = os.path.abspath(run)
-    against(rev, {"GenRL          update (128 starts x 15 steps, aligned reward)": ("s", False, lambda tree: in_tree(tree, BASELINE_UPDATE, run, "genrl", 100)),
-                  "AIME-NoB       round (1 episode, its OT labels, 50 updates)": ("s", False, lambda tree: in_tree(tree, BASELINE_UPDATE, run, "aime", 2))})
+    run, data = os.path.abspath(run), os.path.abspath("data")
+    against(rev, {"GenRL          update (128 starts x 15 steps, aligned reward)": ("s", False, lambda tree: in_tree(tree, BASELINE_UPDATE, run, "genrl", 100, data)),
+                  "AIME-NoB       round (1 episode, its OT labels, 50 updates)": ("s", False, lambda tree: in_tree(tree, BASELINE_UPDATE, run, "aime", 2, data))})
 
 
 def ot_seconds(B=256, T=16, M=500, K=10, D=64, repeat=3):

@@ -54,3 +54,20 @@ def probe_script(name):
     module = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(module)
     return module
+
+
+def kill_at_evaluation(monkeypatch, n):
+    """A baseline's n-th seed evaluation (genrl.evaluate_actor) raises KeyboardInterrupt, as a kill there would;
+    returns the real function (to put back with monkeypatch.setattr)."""
+    import genrl
+
+    evaluate_actor, calls = genrl.evaluate_actor, []
+
+    def killed(*args):
+        calls.append(1)
+        if len(calls) == n:
+            raise KeyboardInterrupt
+        return evaluate_actor(*args)
+
+    monkeypatch.setattr(genrl, "evaluate_actor", killed)
+    return evaluate_actor

@@ -17,6 +17,7 @@ import checkpoint
 import genrl
 import ot_reward
 import presets
+from conftest import kill_at_evaluation
 
 SMOKE = aime_nob.AIMENoBConfig(**presets.PRESETS["aime_nob"]["smoke"])
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
@@ -100,15 +101,7 @@ def test_budget_rows_and_a_killed_seed_going_on(smoke_run, tmp_path, monkeypatch
     assert [(r["env_steps"], r["config"]["env_steps"]) for r in rows] == [(10, 10), (20, 20), (30, 30)]
     alone = aime_nob.run_cell(runs["ten"], "walker_stand", "side", dataclasses.replace(cfg, env_steps=10, eval_at=""))[0]
     assert alone["config"] == rows[0]["config"] and alone["episode_scores"] == rows[0]["episode_scores"]
-    evaluate_actor, calls = genrl.evaluate_actor, []
-
-    def killed_at_the_third(*args):
-        calls.append(1)
-        if len(calls) == 3:
-            raise KeyboardInterrupt
-        return evaluate_actor(*args)
-
-    monkeypatch.setattr(genrl, "evaluate_actor", killed_at_the_third)
+    kill_at_evaluation(monkeypatch, 3)
     with pytest.raises(KeyboardInterrupt):
         aime_nob.run_cell(runs["killed"], "walker_stand", "side", cfg)
     episodes = []

@@ -13,6 +13,7 @@ import torch
 import checkpoint
 import genrl
 import presets
+from conftest import kill_at_evaluation
 
 SMOKE = genrl.GenRLConfig(**presets.PRESETS["genrl"]["smoke"])
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
@@ -149,15 +150,7 @@ def test_a_budget_row_is_the_row_of_a_run_of_that_budget(smoke_run, tmp_path):
 def test_a_seed_killed_after_a_budget_goes_on_from_it(smoke_run, tmp_path, monkeypatch):
     run, whole = _copy(smoke_run, tmp_path, "run"), _copy(smoke_run, tmp_path, "whole")
     cfg = dataclasses.replace(SMOKE, steps=4, eval_at="1,2", seeds=1)
-    evaluate_actor, calls = genrl.evaluate_actor, []
-
-    def killed_at_the_third(*args):
-        calls.append(1)
-        if len(calls) == 3:
-            raise KeyboardInterrupt
-        return evaluate_actor(*args)
-
-    monkeypatch.setattr(genrl, "evaluate_actor", killed_at_the_third)
+    evaluate_actor = kill_at_evaluation(monkeypatch, 3)
     with pytest.raises(KeyboardInterrupt):
         genrl.run_cell(run, "walker_walk", "side", cfg)
     assert _state(run, cfg)["done"] == 2
