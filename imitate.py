@@ -24,7 +24,7 @@ Choices where the paper is silent:
 * a segment against a 500-step demo: whole-demo OT (ot_reward.py) against every demo, the best one counting (ROT).
 
     python imitate.py --demo stickman_run [--view side|diagonal] [--run runs/<name> | --env walker|stickman] [--preset P] [--finetune]
-    python imitate.py --table [--run runs/<name>] [--methods giil,genrl,aime-nob]        (tables.py)
+    python imitate.py --table [--run runs/<name>] [--methods giil,genrl,aime-nob] [--budgets genrl=2000]   (tables.py)
 Missing demos of the one body x task imitated are collected first (collect.py, the run's preset and data folder).
 """
 import argparse
@@ -262,25 +262,40 @@ def imitate(run_dir, demo, view, finetune, ic, zero_shot=True, done=None, online
     return rows
 
 
-def baseline_configs(preset, methods):
+def baseline_configs(preset, methods, budgets=None):
     """{method: (module, its config, the config its rows carry)} of the baselines named in `methods` (tables.BASELINES' keys),
-    each with its own preset of that name (cpu's where it has none)."""
+    each with its own preset of that name (cpu's where it has none); budgets {name: budget} replaces a preset's (GenRL's
+    updates, AIME-NoB's env steps: --budgets)."""
     out = {}
     for name in methods:
         module, cls, key = {"genrl": (genrl, genrl.GenRLConfig, "genrl"), "aime-nob": (aime_nob, aime_nob.AIMENoBConfig, "aime_nob")}[name]
-        cfg = cls(**PRESETS[key].get(preset, {}))  # a preset the baseline has not (paper): its defaults
+        given = {cls.budget_field: (budgets or {})[name]} if name in (budgets or {}) else {}
+        cfg = cls(**{**PRESETS[key].get(preset, {}), **given})  # a preset the baseline has not (paper): its defaults
         out[tables.BASELINES[name]] = (module, cfg, genrl.result_config(cfg))
     return out
 
 
-def table(run_dir, ic, settings=envs.SETTINGS, demos_per_cell=10, shard=(0, 1), methods=("giil",), oc=None):
+def parse_budgets(text):
+    """--budgets genrl=2000,aime-nob=15000 -> {name: budget}."""
+    try:
+        budgets = {name: int(value) for name, value in (item.split("=") for item in text.split(","))}
+    except ValueError:
+        raise ValueError(f"--budgets {text}: pass NAME=BUDGET pairs, e.g. genrl=2000,aime-nob=15000") from None
+    unknown = [name for name in budgets if name not in tables.BASELINES]
+    if unknown:
+        raise ValueError(f"--budgets {unknown[0]}=...: choose from {', '.join(tables.BASELINES)}")
+    return budgets
+
+
+def table(run_dir, ic, settings=envs.SETTINGS, demos_per_cell=10, shard=(0, 1), methods=("giil",), oc=None, budgets=None):
     """Tables 1-2 and 4-11 (tables.py): every setting x task for this agent, GIIL-ZS, GIIL-ZS (demo 0) and GIIL-FT
     ("giil" in `methods`) and the baselines named in `methods` (tables.BASELINES' keys: genrl.py, aime_nob.py, each with
     its preset of ic.preset); runs only what is missing from results.jsonl, and shows every finished cell of all of them.
     `settings` limits which settings run now, shard (i, N) runs only the cells i, i + N, i + 2N, ... of those (in
     tables.cells' order; N processes or machines share one table: rows are appended under a lock, one row per
     evaluation, and a cell's rows are told apart by method and seed, so shards merge without loss or duplicates); the
-    tables show every finished cell. A row counts only if it was made with the demos now on disk (their returns match)
+    tables show every finished cell. budgets {name: budget}: the baselines' columns at these budgets instead of their
+    presets' (parse_budgets; a budget's rows from genrl.py / aime_nob.py --eval-at count). A row counts only if it was made with the demos now on disk (their returns match)
     and with the settings asked for (tables.result_config): regenerating D_demo or changing a setting makes the cells
     run again instead of mixing old and new results."""
     unknown = [m for m in methods if m not in ("giil", "online") and m not in tables.BASELINES]
@@ -288,7 +303,7 @@ def table(run_dir, ic, settings=envs.SETTINGS, demos_per_cell=10, shard=(0, 1), 
         raise ValueError(f"--methods {','.join(unknown)}: choose from giil, online, {', '.join(tables.BASELINES)}")
     oc = oc or online.OnlineConfig(**PRESETS["online"][ic.preset])
     rundir.check_flags(ic)
-    baselines = baseline_configs(ic.preset, tables.BASELINES)  # their finished cells are shown whichever methods run now
+    baselines = baseline_configs(ic.preset, tables.BASELINES, budgets)  # their finished cells are shown whichever methods run now
     cfgs = checkpoint.load_run(run_dir)[0]
     agent, shown = cfgs["train"].env, []
     configs = {**{m: tables.result_config(ic, m, oc) for m in tables.METHODS + (tables.ONLINE,)}, **{m: b[2] for m, b in baselines.items()}}
@@ -344,6 +359,8 @@ def main():
     parser.add_argument("--settings", help="with --table: the settings to run now, comma-separated (default all)")
     parser.add_argument("--shard", metavar="I/N", help="with --table: run only cells I, I + N, ... of those of --settings (N processes, one table)")
     rundir.threads_flag(parser)
+    parser.add_argument("--budgets", help="with --table: the baselines' columns at these budgets instead of their presets', e.g. "
+                        "genrl=2000,aime-nob=15000 (GenRL updates, AIME-NoB env steps)")
     parser.add_argument("--methods", help="with --table: comma-separated, of giil (GIIL-ZS, GIIL-FT; the default), genrl, aime-nob (the "
                         "baselines, genrl.py and aime_nob.py with their --preset); e.g. giil,genrl,aime-nob")
     for field in dataclasses.fields(ImitateConfig):
@@ -355,7 +372,7 @@ def main():
     ic = ImitateConfig(**{**PRESETS["imitate"][given.get("preset", "cpu")], **given})
     # a flag that does nothing in the mode chosen is an error, not ignored
     demo_only = [f for f in ("demo", "view", "finetune", "online") if getattr(args, f)]
-    table_only = [f for f in ("settings", "shard", "methods") if getattr(args, f) is not None]
+    table_only = [f for f in ("settings", "shard", "methods", "budgets") if getattr(args, f) is not None]
     if args.table and demo_only:
         parser.error(f"--{demo_only[0]} does nothing with --table (it runs every demo and view): drop it")
     if not args.table and table_only:
@@ -371,9 +388,10 @@ def main():
     if args.table:
         try:
             settings, shard = tables.parse_settings(args.settings or ",".join(envs.SETTINGS)), tables.parse_shard(args.shard)
+            budgets = parse_budgets(args.budgets) if args.budgets else None
         except ValueError as error:
             parser.error(str(error))
-        table(run, ic, settings, shard=shard, methods=(args.methods or "giil").split(","), oc=oc)
+        table(run, ic, settings, shard=shard, methods=(args.methods or "giil").split(","), oc=oc, budgets=budgets)
     elif args.demo:
         view, lock = args.view or "side", tables.cell_lock(run, args.demo, args.view or "side")
         with rundir.claim(lock) as other:  # as a --table cell: one process at a time

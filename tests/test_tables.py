@@ -121,6 +121,13 @@ def test_baselines_join_the_table_as_columns_and_are_not_rerun(smoke_run, tmp_pa
     assert "| GenRL (ours) | AIME-NoB (ours) |" in open(os.path.join(run, "tables.md")).read()  # the baselines' cells stay
     with pytest.raises(ValueError, match="--methods dreamer: choose from giil, online, genrl, aime-nob"):
         imitate.table(run, SMOKE, methods=("giil", "dreamer"))
+    # --budgets: GenRL's column at 2 updates, its 3-update rows (the preset's) no longer shown, then run again at 2
+    genrl_rows = len([r for r in tables.load_results(run) if r["method"] == "GenRL"])
+    imitate.table(run, smoke, methods=("genrl",), budgets=imitate.parse_budgets("genrl=2"), **one_cell)
+    at_two = [r for r in tables.load_results(run) if r["method"] == "GenRL"][genrl_rows:]
+    assert [r["config"]["steps"] for r in at_two] == [2] * seeds["GenRL"]
+    with pytest.raises(ValueError, match=r"--budgets dreamer=\.\.\.: choose from genrl, aime-nob"):
+        imitate.parse_budgets("dreamer=5")
 
 
 def test_finetuning_gain_is_paired_by_cell_and_seed():
