@@ -175,14 +175,16 @@ def markdown_curves(agent, rows, settings, seeds=3):
     """One line per method and budget: the score over the complete cells (mean +- s.e. over cells x seeds), the cells,
     the minutes per seed, and the paper's score of the method over the same settings."""
     out = [f"### {agent}: score against budget, {' + '.join(settings)} cells", "",
-           "| method | budget | score | cells x seeds | minutes per seed | paper |", "|---|---|---|---|---|---|"]
+           "| method | budget | score | " + " / ".join(envs.TASKS) + " | cells x seeds | minutes per seed | paper |", "|---|---|---|---|---|---|---|"]
     for method, points in sorted(curve_points(rows, settings).items()):
         paper = (f"{np.mean([PAPER[agent]['all'][SETTINGS.index(w)][PAPER_METHODS.index(method)] for w in settings]):.1f}"
                  if method in PAPER_METHODS else "-")
         line, cells = curve(points, 1 if method.startswith("GIIL") else seeds)
         for budget, scores, seconds in line:
+            kept = [(c[0].rsplit("_", 1)[1], score) for c, _, score, _ in points[budget] if c in cells]
+            tasks = " / ".join(f"{np.mean([v for t, v in kept if t == task]):.1f}" if any(t == task for t, _ in kept) else "-" for task in envs.TASKS)
             out.append(f"| {method} | {f'{budget} {BUDGET[method][1]}' if budget else '-'} | {np.mean(scores):.1f} +- "
-                       f"{evaluate.stderr(scores):.1f} | {len(cells)} x {len(scores) / len(cells):.0f} | {np.mean(seconds) / 60:.1f} | {paper} |")
+                       f"{evaluate.stderr(scores):.1f} | {tasks} | {len(cells)} x {len(scores) / len(cells):.0f} | {np.mean(seconds) / 60:.1f} | {paper} |")
     return "\n".join(out) + "\n"
 
 

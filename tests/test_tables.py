@@ -177,13 +177,13 @@ def test_curves_average_the_same_cells_at_every_budget(tmp_path):
     assert cells == {("walker_walk", "side"), ("walker_run", "side")}
     assert [(b, np.mean(s), np.mean(t)) for b, s, t in line] == [(1000, 20.0, 60.0), (2000, 30.0, 120.0)]
     text = tables.markdown_curves("walker", rows, ["SE-SV"])
-    assert "| GenRL | 2000 updates | 30.0 +- 4.5 | 2 x 3 | 2.0 | 86.0 |" in text and "4000" not in text
-    assert "| GIIL-ZS | - | 54.5 +- 1.0 | 1 x 10 | 0.1 | 42.5 |" in text
+    assert "| GenRL | 2000 updates | 30.0 +- 4.5 | - / 20.0 / 40.0 / - | 2 x 3 | 2.0 | 86.0 |" in text and "4000" not in text
+    assert "| GIIL-ZS | - | 54.5 +- 1.0 | - / 54.5 / - / - | 1 x 10 | 0.1 | 42.5 |" in text
     path = tmp_path / "rows.jsonl"
     path.write_text("".join(json.dumps(r) + "\n" for r in rows))
     png = tmp_path / "curves.png"
     out = subprocess.run([sys.executable, "tables.py", "--curves", str(path), str(path), "--settings", "SE-SV", "--png", str(png)],
                          cwd=ROOT, capture_output=True, text=True)
-    assert out.returncode == 0 and "| GenRL | 1000 updates | 20.0 +- 4.5 | 2 x 3 |" in out.stdout and png.stat().st_size > 1000  # the file twice: once
+    assert out.returncode == 0 and "| GenRL | 1000 updates | 20.0 +- 4.5 | - / 10.0 / 30.0 / - | 2 x 3 |" in out.stdout and png.stat().st_size > 1000  # the file twice: once
     out = subprocess.run([sys.executable, "tables.py", "--curves", str(tmp_path / "none.jsonl")], cwd=ROOT, capture_output=True, text=True)
     assert out.returncode == 1 and out.stderr.strip().startswith(f"error: {tmp_path / 'none.jsonl'}: no such file")
