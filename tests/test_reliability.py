@@ -514,7 +514,9 @@ def test_ctrl_c_then_the_same_imitate_command_goes_on_without_duplicates(smoke_r
     run = copy_run(smoke_run, tmp_path)
     # Ctrl-C in GIIL-FT seed 0's first update; the sleep holds the call until Python runs the SIGINT handler, which it
     # may otherwise do only after the call returned None and its caller failed on it
+    # (Python's own SIGINT handler put back: a shell starts background jobs with SIGINT ignored, and Python keeps that)
     interrupted = ("import os, runpy, signal, sys, time, ot_reward\n"
+                   "signal.signal(signal.SIGINT, signal.default_int_handler)\n"
                    "ot_reward.ot_reward = lambda *a, **k: (os.kill(os.getpid(), signal.SIGINT), time.sleep(60))\n"
                    "sys.argv = ['imitate.py'] + sys.argv[1:]\nrunpy.run_path('imitate.py', run_name='__main__')\n")
     flags = ["--demo", "walker_run", "--finetune", "--preset", "smoke", "--run", run]
