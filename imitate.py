@@ -266,10 +266,10 @@ def baseline_configs(preset, methods, budgets=None):
     """{method: (module, its config, the config its rows carry)} of the baselines named in `methods` (tables.BASELINES' keys),
     each with its own preset of that name (cpu's where it has none); budgets {name: budget} replaces a preset's (GenRL's
     updates, AIME-NoB's env steps: --budgets)."""
-    out = {}
+    out, budgets = {}, budgets or {}
     for name in methods:
         module, cls, key = {"genrl": (genrl, genrl.GenRLConfig, "genrl"), "aime-nob": (aime_nob, aime_nob.AIMENoBConfig, "aime_nob")}[name]
-        given = {cls.budget_field: (budgets or {})[name]} if name in (budgets or {}) else {}
+        given = {cls.budget_field: budgets[name]} if name in budgets else {}
         cfg = cls(**{**PRESETS[key].get(preset, {}), **given})  # a preset the baseline has not (paper): its defaults
         out[tables.BASELINES[name]] = (module, cfg, genrl.result_config(cfg))
     return out
@@ -295,8 +295,8 @@ def table(run_dir, ic, settings=envs.SETTINGS, demos_per_cell=10, shard=(0, 1), 
     tables.cells' order; N processes or machines share one table: rows are appended under a lock, one row per
     evaluation, and a cell's rows are told apart by method and seed, so shards merge without loss or duplicates); the
     tables show every finished cell. budgets {name: budget}: the baselines' columns at these budgets instead of their
-    presets' (parse_budgets; a budget's rows from genrl.py / aime_nob.py --eval-at count). A row counts only if it was made with the demos now on disk (their returns match)
-    and with the settings asked for (tables.result_config): regenerating D_demo or changing a setting makes the cells
+    presets' (parse_budgets; a budget's rows from genrl.py / aime_nob.py --eval-at count). A row counts only if it was
+    made with the demos now on disk (their returns match) and with the settings asked for (tables.result_config): regenerating D_demo or changing a setting makes the cells
     run again instead of mixing old and new results."""
     unknown = [m for m in methods if m not in ("giil", "online") and m not in tables.BASELINES]
     if unknown:
