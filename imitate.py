@@ -275,18 +275,6 @@ def baseline_configs(preset, methods, budgets=None):
     return out
 
 
-def parse_budgets(text):
-    """--budgets genrl=2000,aime-nob=15000 -> {name: budget}."""
-    try:
-        budgets = {name: int(value) for name, value in (item.split("=") for item in text.split(","))}
-    except ValueError:
-        raise ValueError(f"--budgets {text}: pass NAME=BUDGET pairs, e.g. genrl=2000,aime-nob=15000") from None
-    unknown = [name for name in budgets if name not in tables.BASELINES]
-    if unknown:
-        raise ValueError(f"--budgets {unknown[0]}=...: choose from {', '.join(tables.BASELINES)}")
-    return budgets
-
-
 def table(run_dir, ic, settings=envs.SETTINGS, demos_per_cell=10, shard=(0, 1), methods=("giil",), oc=None, budgets=None):
     """Tables 1-2 and 4-11 (tables.py): every setting x task for this agent, GIIL-ZS, GIIL-ZS (demo 0) and GIIL-FT
     ("giil" in `methods`) and the baselines named in `methods` (tables.BASELINES' keys: genrl.py, aime_nob.py, each with
@@ -295,7 +283,7 @@ def table(run_dir, ic, settings=envs.SETTINGS, demos_per_cell=10, shard=(0, 1), 
     tables.cells' order; N processes or machines share one table: rows are appended under a lock, one row per
     evaluation, and a cell's rows are told apart by method and seed, so shards merge without loss or duplicates); the
     tables show every finished cell. budgets {name: budget}: the baselines' columns at these budgets instead of their
-    presets' (parse_budgets; a budget's rows from genrl.py / aime_nob.py --eval-at count). A row counts only if it was
+    presets' (tables.parse_budgets; a budget's rows from genrl.py / aime_nob.py --eval-at count). A row counts only if it was
     made with the demos now on disk (their returns match) and with the settings asked for (tables.result_config): regenerating D_demo or changing a setting makes the cells
     run again instead of mixing old and new results."""
     unknown = [m for m in methods if m not in ("giil", "online") and m not in tables.BASELINES]
@@ -388,7 +376,7 @@ def main():
     if args.table:
         try:
             settings, shard = tables.parse_settings(args.settings or ",".join(envs.SETTINGS)), tables.parse_shard(args.shard)
-            budgets = parse_budgets(args.budgets) if args.budgets else None
+            budgets = tables.parse_budgets(args.budgets) if args.budgets else None
         except ValueError as error:
             parser.error(str(error))
         table(run, ic, settings, shard=shard, methods=(args.methods or "giil").split(","), oc=oc, budgets=budgets)

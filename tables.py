@@ -3,6 +3,8 @@
 them count for a cell, and the markdown of runs/<name>/tables.md; `python imitate.py --table [--methods
 giil,genrl,aime-nob]` runs the cells missing (imitate.table) and writes it.
 
+From committed rows alone (no checkpoint, no demos): `python tables.py --table docs/results/table_<agent>.jsonl`.
+
 Score against compute (ours): every method's score against the minutes one seed took, the baselines at each budget
 they were run at (genrl.py / aime_nob.py --eval-at), from rows of any results.jsonl:
 
@@ -110,6 +112,18 @@ def parse_settings(text):
     return settings
 
 
+def parse_budgets(text):
+    """--budgets genrl=2000,aime-nob=15000 -> {name: budget}."""
+    try:
+        budgets = {name: int(value) for name, value in (item.split("=") for item in text.split(","))}
+    except ValueError:
+        raise ValueError(f"--budgets {text}: pass NAME=BUDGET pairs, e.g. genrl=2000,aime-nob=15000") from None
+    unknown = [name for name in budgets if name not in BASELINES]
+    if unknown:
+        raise ValueError(f"--budgets {unknown[0]}=...: choose from {', '.join(BASELINES)}")
+    return budgets
+
+
 def cells(agent):
     """Every (task, setting) of an agent's table, in a fixed order (what --shard splits)."""
     return [(task, where) for task in envs.TASKS for where in SETTINGS]
@@ -142,6 +156,33 @@ def markdown_tables(agent, rows):
                        + " | ".join(cell(g) for g in gains) + " | " + " | ".join(f"{p:.2f}" for p in paper) + " |")
         out.append("")
     return "\n".join(out)
+
+
+def table_rows(rows, budgets=None):
+    """The rows of one table (markdown_tables) out of rows of any runs: a baseline's at budgets[its --methods name] or at
+    its only budget, of every method the rows of one config, of every cell those of one set of demos; where that is
+    not one, the error says what to pass."""
+    budgets, out = budgets or {}, []
+    for method in sorted({r["method"] for r in rows}):
+        mine = [r for r in rows if r["method"] == method]
+        if method in BUDGET:
+            (name,), (field, unit) = [n for n, m in BASELINES.items() if m == method], BUDGET[method]
+            have = sorted({r["config"][field] for r in mine})
+            if name in budgets and budgets[name] not in have:
+                raise ValueError(f"--budgets {name}={budgets[name]}: no {method} rows at {budgets[name]} {unit} (they are at {', '.join(map(str, have))})")
+            if name not in budgets and len(have) > 1:
+                raise ValueError(f"{method} rows at {', '.join(map(str, have))} {unit}: pick one with --budgets {name}=N")
+            mine = [r for r in mine if r["config"][field] == budgets.get(name, have[0])]
+        if len({json.dumps(r["config"], sort_keys=True) for r in mine}) > 1:
+            raise ValueError(f"{method} rows made with different settings (their config): pass the rows of one table")
+        out += mine
+    demos = {}
+    for r in out:
+        demos.setdefault((r["demo"], r["view"]), set()).add(json.dumps(r.get("demo_returns")))
+    mixed = [cell for cell, sets in demos.items() if len(sets) > 1]
+    if mixed:
+        raise ValueError(f"{mixed[0][0]} ({mixed[0][1]} view): rows made with {len(demos[mixed[0]])} sets of demos: pass the rows of one table")
+    return out
 
 
 BUDGET = {"GenRL": ("steps", "updates"), "AIME-NoB": ("env_steps", "env steps")}  # a baseline's budget: its config field, its unit
@@ -218,20 +259,32 @@ def plot_curves(agent, rows, settings, path, seeds=3):
 
 
 def main():
-    parser = argparse.ArgumentParser(description="Score against compute of every method, from result rows (docs/results.md).", allow_abbrev=False)
-    parser.add_argument("--curves", nargs="+", required=True, metavar="ROWS", help="results.jsonl files of one agent")
-    parser.add_argument("--settings", default="SE-SV,SE-CV", help="the settings averaged (default the same-body ones)")
-    parser.add_argument("--seeds", type=int, default=3, help="a baseline's cell counts with this many seeds at each budget")
-    parser.add_argument("--png", help="also draw the figure here")
+    parser = argparse.ArgumentParser(description="Tables 1-2 and 4-11, or score against compute, from result rows (docs/results.md).", allow_abbrev=False)
+    mode = parser.add_mutually_exclusive_group(required=True)
+    mode.add_argument("--table", nargs="+", metavar="ROWS", help="results.jsonl files of one agent: its tables (as imitate.py --table)")
+    mode.add_argument("--curves", nargs="+", metavar="ROWS", help="results.jsonl files of one agent: score against compute")
+    parser.add_argument("--budgets", help="with --table: the baselines' columns at these budgets, e.g. genrl=2000,aime-nob=15000")
+    parser.add_argument("--settings", default="SE-SV,SE-CV", help="with --curves: the settings averaged (default the same-body ones)")
+    parser.add_argument("--seeds", type=int, default=3, help="with --curves: a baseline's cell counts with this many seeds at each budget")
+    parser.add_argument("--png", help="with --curves: also draw the figure here")
     args = parser.parse_args()
-    missing = [path for path in args.curves if not os.path.isfile(path)]
+    if args.table and (args.png or args.settings != parser.get_default("settings")):
+        parser.error("--png and --settings work with --curves only: drop them")
+    if args.curves and args.budgets:
+        parser.error("--budgets works with --table only: drop it")
+    paths = args.table or args.curves
+    missing = [path for path in paths if not os.path.isfile(path)]
     if missing:
         raise ValueError(f"{missing[0]}: no such file; pass results.jsonl files (runs/<name>/results.jsonl, docs/results/*.jsonl)")
-    rows = latest(r for path in args.curves for r in rundir.read_jsonl(path))  # a row in two files counts once
+    rows = latest(r for path in paths for r in rundir.read_jsonl(path))  # a row in two files counts once
     agents = {r["agent"] for r in rows}
     if len(agents) != 1:
         raise ValueError(f"the rows are of agents {sorted(agents)}: pass one agent's files")
-    settings, agent = parse_settings(args.settings), agents.pop()
+    agent = agents.pop()
+    if args.table:
+        print(markdown_tables(agent, table_rows(rows, parse_budgets(args.budgets) if args.budgets else None)))
+        return
+    settings = parse_settings(args.settings)
     print(markdown_curves(agent, rows, settings, args.seeds))
     if args.png:
         plot_curves(agent, rows, settings, args.png, args.seeds)

@@ -123,11 +123,11 @@ def test_baselines_join_the_table_as_columns_and_are_not_rerun(smoke_run, tmp_pa
         imitate.table(run, SMOKE, methods=("giil", "dreamer"))
     # --budgets: GenRL's column at 2 updates, its 3-update rows (the preset's) no longer shown, then run again at 2
     genrl_rows = len([r for r in tables.load_results(run) if r["method"] == "GenRL"])
-    imitate.table(run, smoke, methods=("genrl",), budgets=imitate.parse_budgets("genrl=2"), **one_cell)
+    imitate.table(run, smoke, methods=("genrl",), budgets=tables.parse_budgets("genrl=2"), **one_cell)
     at_two = [r for r in tables.load_results(run) if r["method"] == "GenRL"][genrl_rows:]
     assert [r["config"]["steps"] for r in at_two] == [2] * seeds["GenRL"]
     with pytest.raises(ValueError, match=r"--budgets dreamer=\.\.\.: choose from genrl, aime-nob"):
-        imitate.parse_budgets("dreamer=5")
+        tables.parse_budgets("dreamer=5")
 
 
 def test_finetuning_gain_is_paired_by_cell_and_seed():
@@ -187,3 +187,31 @@ def test_curves_average_the_same_cells_at_every_budget(tmp_path):
     assert out.returncode == 0 and "| GenRL | 1000 updates | 20.0 +- 4.5 | - / 10.0 / 30.0 / - | 2 x 3 |" in out.stdout and png.stat().st_size > 1000  # the file twice: once
     out = subprocess.run([sys.executable, "tables.py", "--curves", str(tmp_path / "none.jsonl")], cwd=ROOT, capture_output=True, text=True)
     assert out.returncode == 1 and out.stderr.strip().startswith(f"error: {tmp_path / 'none.jsonl'}: no such file")
+
+
+def test_a_table_from_rows_alone_picks_one_budget_and_refuses_mixed_rows(tmp_path):
+    """tables.py --table ROWS: a baseline at several budgets needs --budgets, the chosen budget's rows alone are shown;
+    rows of two configs of a method, or of two demo sets in a cell, are an error rather than one column."""
+    import pytest
+
+    rows = [_row("GenRL", "walker_walk", s, 10.0 * b / 1000 + s, 60, steps=b) for b in (1000, 2000) for s in range(3)]
+    rows += [_row("GIIL-FT", "walker_walk", s, 50.0 + s, 30, steps=300) for s in range(3)]
+    with pytest.raises(ValueError, match=r"^GenRL rows at 1000, 2000 updates: pick one with --budgets genrl=N$"):
+        tables.table_rows(rows)
+    with pytest.raises(ValueError, match=r"--budgets genrl=4000: no GenRL rows at 4000 updates \(they are at 1000, 2000\)"):
+        tables.table_rows(rows, {"genrl": 4000})
+    kept = tables.table_rows(rows, tables.parse_budgets("genrl=2000"))
+    assert sorted((r["method"], r["score"]) for r in kept) == [("GIIL-FT", 50.0), ("GIIL-FT", 51.0), ("GIIL-FT", 52.0),
+                                                               ("GenRL", 20.0), ("GenRL", 21.0), ("GenRL", 22.0)]
+    assert "| SE-SV | - | - | 51.0 +- 0.6 | 21.0 +- 0.6 | - |" in tables.markdown_tables("walker", kept)
+    with pytest.raises(ValueError, match="GIIL-FT rows made with different settings"):
+        tables.table_rows(rows + [_row("GIIL-FT", "walker_walk", 3, 0.0, 30, steps=100)], {"genrl": 1000})
+    other_demos = {**_row("GIIL-FT", "walker_walk", 4, 0.0, 30, steps=300), "demo_returns": [2.0]}
+    with pytest.raises(ValueError, match=r"walker_walk \(side view\): rows made with 2 sets of demos"):
+        tables.table_rows(rows + [other_demos], {"genrl": 1000})
+    path = tmp_path / "rows.jsonl"
+    path.write_text("".join(json.dumps(r) + "\n" for r in rows))
+    out = subprocess.run([sys.executable, "tables.py", "--table", str(path), "--budgets", "genrl=1000"], cwd=ROOT, capture_output=True, text=True)
+    assert out.returncode == 0 and "| SE-SV | - | - | 51.0 +- 0.6 | 11.0 +- 0.6 | - |" in out.stdout
+    out = subprocess.run([sys.executable, "tables.py", "--curves", str(path), "--budgets", "genrl=1000"], cwd=ROOT, capture_output=True, text=True)
+    assert out.returncode == 2 and "--budgets works with --table only: drop it" in out.stderr
