@@ -3,7 +3,8 @@
 them count for a cell, and the markdown of runs/<name>/tables.md; `python imitate.py --table [--methods
 giil,genrl,aime-nob]` runs the cells missing (imitate.table) and writes it.
 
-From committed rows alone (no checkpoint, no demos): `python tables.py --table docs/results/table_<agent>.jsonl`.
+From committed rows alone (no checkpoint, no demos), as docs/tables_<agent>.md: `python tables.py --table
+docs/results/{online,curves,table}_<agent>.jsonl --budgets genrl=1000,aime-nob=5000`.
 
 Score against compute (ours): every method's score against the minutes one seed took, the baselines at each budget
 they were run at (genrl.py / aime_nob.py --eval-at), from rows of any results.jsonl:
@@ -268,8 +269,9 @@ def main():
     parser.add_argument("--seeds", type=int, default=3, help="with --curves: a baseline's cell counts with this many seeds at each budget")
     parser.add_argument("--png", help="with --curves: also draw the figure here")
     args = parser.parse_args()
-    if args.table and (args.png or args.settings != parser.get_default("settings")):
-        parser.error("--png and --settings work with --curves only: drop them")
+    curves_only = [f for f in ("png", "settings", "seeds") if getattr(args, f) != parser.get_default(f)]
+    if args.table and curves_only:
+        parser.error(f"--{curves_only[0]} works with --curves only: drop it")
     if args.curves and args.budgets:
         parser.error("--budgets works with --table only: drop it")
     paths = args.table or args.curves

@@ -215,3 +215,5 @@ def test_a_table_from_rows_alone_picks_one_budget_and_refuses_mixed_rows(tmp_pat
     assert out.returncode == 0 and "| SE-SV | - | - | 51.0 +- 0.6 | 11.0 +- 0.6 | - |" in out.stdout
     out = subprocess.run([sys.executable, "tables.py", "--curves", str(path), "--budgets", "genrl=1000"], cwd=ROOT, capture_output=True, text=True)
     assert out.returncode == 2 and "--budgets works with --table only: drop it" in out.stderr
+    out = subprocess.run([sys.executable, "tables.py", "--table", str(path), "--seeds", "5"], cwd=ROOT, capture_output=True, text=True)
+    assert out.returncode == 2 and "--seeds works with --curves only: drop it" in out.stderr
