@@ -4,7 +4,8 @@ them count for a cell, and the markdown of runs/<name>/tables.md; `python imitat
 giil,genrl,aime-nob]` runs the cells missing (imitate.table) and writes it.
 
 From committed rows alone (no checkpoint, no demos), as docs/tables_<agent>.md: `python tables.py --table
-docs/results/{online,curves,table}_<agent>.jsonl --budgets genrl=1000,aime-nob=5000`.
+docs/results/{online,curves,table}_<agent>.jsonl --budgets genrl=1000,aime-nob=5000` (the presets' budgets; each page
+names the budgets it shows).
 
 Score against compute (ours): every method's score against the minutes one seed took, the baselines at each budget
 they were run at (genrl.py / aime_nob.py --eval-at), from rows of any results.jsonl:
