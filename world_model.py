@@ -170,9 +170,10 @@ class WorldModel(nn.Module):
         zeros = lambda n: torch.zeros(batch_size, n, device=device)
         return {"deter": zeros(self.cfg.deter), "stoch": zeros(self.cfg.stoch), "mean": zeros(self.cfg.stoch), "std": zeros(self.cfg.stoch)}
 
-    def observe(self, obs, action, is_first, state=None):
+    def observe(self, obs, action, is_first, state=None, sample=True):
         """Filter a sequence: obs (B, T, *obs_shape), action (B, T, A) = a_{t-1}, is_first (B, T) bool,
         state (B, .) the latent before index 0 (zeros if None) -> post, prior: dicts of (B, T, .) tensors.
+        sample=False: the posterior's means instead of samples (a deterministic filter, for the fidelity benchmark).
 
         The time loop is the cost of an RSSM, so it holds only what depends on the previous step: the encoder,
         the action's and the embedding's share of the layers that read them, the noise and the prior head all
@@ -188,7 +189,7 @@ class WorldModel(nn.Module):
         # per step in backward; unbind's backward is one stack
         action_in = F.linear(action * keep, w_a, self.img_in.bias).unbind(1)  # T x (B, hidden): W_a a_{t-1} + b, a = 0 at a start
         embed_in = F.linear(embed, w_e, self.post_in.bias).unbind(1)  # T x (B, hidden): W_e e_t + b
-        noise = torch.randn(B, T, cfg.stoch, device=embed.device).unbind(1)  # T x (B, Z)
+        noise = (torch.randn(B, T, cfg.stoch, device=embed.device) * sample).unbind(1)  # T x (B, Z)
         keep = keep.unbind(1)  # T x (B, 1)
         w_z, w_h = w_z.t(), w_h.t()
         resets = is_first.any(0).tolist()
