@@ -31,13 +31,17 @@ class TrainConfig:
     preset: str = "cpu"  # smoke | cpu | paper: sizes of every component and of D_body
     seed: int = 0
     steps: int = 3000  # updates (ours: a CPU budget, docs/results.md; Dreamer-scale runs use ~1e5 and more)
-    policy_start: int = 1000  # updates of the models before the actor-critic starts (ours)
+    # updates of the world model and goal VAE alone (Eq. 2, 3) before the `steps` of phase 1 (ours: a world-model stage, as
+    # V-D4RL's offline DreamerV2 and GenRL pretrain their world models before any behaviour learning)
+    wm_steps: int = 0
+    policy_start: int = 1000  # updates of phase 1 before the actor-critic starts (ours)
     holdout_every: int = 20  # every 20th D_body episode is held out of training, for evaluate.evaluate_imagination (ours)
     eval_episodes: int = 3  # goal-reaching benchmark (evaluate.py, ours): episodes per own-body demo goal
     eval_steps: int = 500  # agent steps per goal-reaching episode (a whole episode)
     eval_seed: int = 30_000  # the benchmark's first environment seed; another gives fresh start poses, to confirm a choice made on it
     log_every: int = 100
     checkpoint_every: int = 250
+    fidelity_every: int = 0  # updates between rows of the world model's fidelity benchmark (fidelity.py) in fidelity.jsonl; 0: none
     data: str = "data"  # the datasets' folder (presets.DATA)
     encoder: str = "default"  # video encoder of the features p_t (video_encoder.py)
     threads: int = 1  # torch CPU threads (ours: these small models ran faster on 1 than on 2 with the cores shared, docs/results.md, Speed)

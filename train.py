@@ -30,6 +30,7 @@ import collect
 import distance
 import envs
 import evaluate
+import fidelity
 import policy
 import rundir
 from checkpoint import COMPONENTS, TrainConfig, default_run_dir, load_run
@@ -38,7 +39,7 @@ from video_encoder import check_same_encoder, load_encoder
 
 
 # fields that may differ when a run is resumed: they do not change what the models are
-RESUMABLE = {"steps", "log_every", "checkpoint_every", "eval_episodes", "eval_steps", "eval_seed", "data", "threads",
+RESUMABLE = {"steps", "wm_steps", "log_every", "checkpoint_every", "fidelity_every", "eval_episodes", "eval_steps", "eval_seed", "data", "threads",
              "bc_polish", "bc_polish_batches"}  # the polish starts from the training actor, kept apart in the checkpoint
 LR_FLAGS = {"world_model": ("wm", "lr"), "goal_vae": ("goal", "lr"), "dist_net": ("dist", "lr"), "actor": ("ac", "actor_lr"), "critic": ("ac", "critic_lr")}
 
@@ -66,7 +67,9 @@ def resolve_configs(args, preset):
 def log_line(m):
     """One line per log step, grouped by equation; the actor-critic's part only once it has started."""
     line = (f"{m['step']}: Eq.2 wm {m['wm_loss']:.2f} (recon {m['recon']:.2f} kl {m['kl']:.2f} open-loop {m['open_loop']:.3f}, "
-            f"p cos {m['open_loop_p_cos']:.2f}) | Eq.3 goal {m['goal_loss']:.2f} (cos {m['goal_cos']:.2f}) | Eq.7 dist {m['dist_loss']:.3f}")
+            f"p cos {m['open_loop_p_cos']:.2f}) | Eq.3 goal {m['goal_loss']:.2f} (cos {m['goal_cos']:.2f})")
+    if "dist_loss" in m:  # not in the world-model stage
+        line += f" | Eq.7 dist {m['dist_loss']:.3f}"
     if "d_enc" in m:
         line += " (d of encoder goals 1/5/15/30 ahead, other: " + " ".join(f"{d:.2f}" for d in m["d_enc"]) + ")"
     if "actor_loss" in m:
@@ -151,8 +154,12 @@ def resume_from(ckpt_path, resume, cfgs, models, optims, encoder, device, rng):
     changed = [f"{n}.{k}" for n in config for k in config[n] if k not in RESUMABLE and saved[n].get(k) != config[n][k]]
     if changed:
         raise ValueError(f"{ckpt_path} was trained with other {', '.join(changed)}: pass the same flags to resume, or start a new run")
-    if config["train"]["steps"] < ckpt["step"]:
-        raise ValueError(f"--steps {config['train']['steps']} is below the update {ckpt['step']} of {ckpt_path}: pass --steps {ckpt['step']} or more")
+    if config["train"]["wm_steps"] + config["train"]["steps"] < ckpt["step"]:
+        raise ValueError(f"--wm-steps {config['train']['wm_steps']} + --steps {config['train']['steps']} is below the update {ckpt['step']} of "
+                         f"{ckpt_path}: pass --steps {ckpt['step'] - config['train']['wm_steps']} or more")
+    stage = (saved["train"].get("wm_steps", 0), config["train"]["wm_steps"])
+    if stage[0] != stage[1] and ckpt["step"] > min(stage):  # a longer or shorter stage, but only while the run is in it
+        raise ValueError(f"{ckpt_path} is at update {ckpt['step']}, past its world-model stage of {stage[0]} updates: pass --wm-steps {stage[0]}")
     check_same_encoder(ckpt["encoder"], encoder.name, ckpt_path)
     for name, model in models.items():
         model.load_state_dict(ckpt["models"][name])
@@ -225,21 +232,36 @@ def pretrain(cfgs, run_dir, resume):
     models = checkpoint.build_models(cfgs, *shapes, device)
     wm, vae, dist_net, actor, critic, slow_critic = (models[k] for k in ("world_model", "goal_vae", "dist_net", "actor", "critic", "slow_critic"))
     optims, clips = make_optimizers(models, cfgs)
-    ckpt_path, log_path = os.path.join(run_dir, "checkpoint.pt"), os.path.join(run_dir, "metrics.jsonl")
+    ckpt_path, log_path, fidelity_path = (os.path.join(run_dir, n) for n in ("checkpoint.pt", "metrics.jsonl", "fidelity.jsonl"))
     first, rng = resume_from(ckpt_path, resume, cfgs, models, optims, encoder, device, rng)
-    rundir.trim_jsonl(log_path, first)  # rows a killed run logged after its checkpoint
+    for path in (log_path, fidelity_path):  # rows a killed run logged after its checkpoint
+        rundir.trim_jsonl(path, first)
     keep = lambda done, **actors: save(ckpt_path, cfgs, done, rng, encoder, shapes, models, optims, **actors)
     update = lambda name, loss, term: checkpoint.checked_step(optims[name], loss, term, step, lambda: stop_hint(ckpt_path, saved, cfgs, name), clips[name])
-    saved, t0, metrics = first, time.time(), {}
-    for step in (bar := tqdm(range(first, tc.steps), initial=first, total=tc.steps, desc=f"train {os.path.basename(run_dir)}")):
+    saved, t0, metrics, total = first, time.time(), {}, tc.wm_steps + tc.steps
+    fidelity_sources = fidelity.held_out_episodes(cfgs) if tc.fidelity_every else None
+    for step in (bar := tqdm(range(first, total), initial=first, total=total, desc=f"train {os.path.basename(run_dir)}")):
         batch = data.sample(wc.batch, rng, device)
-        logged = (step + 1) % tc.log_every == 0 or step + 1 == tc.steps  # the update whose metrics the log row keeps
+        logged = (step + 1) % tc.log_every == 0 or step + 1 == total  # the update whose metrics the log row keeps
         # Eq. 2: the world model (RSSM) on the segments -> posterior states s_t
         loss, m2, post = wm.loss(batch)
         update("world_model", loss, "Eq. 2 world-model loss")
         # Eq. 3: the goal VAE, q(s | p_t) and p(p_t | s), against sg(posterior)
         loss, m3 = vae.loss(batch["p"], post)
         update("goal_vae", loss, "Eq. 3 goal-VAE loss")
+        if step < tc.wm_steps:  # the world-model stage: Eq. 2 and 3 alone
+            metrics.update(m2 | m3)
+            if logged:
+                metrics.update(step=step + 1, updates_per_s=tc.log_every / (time.time() - t0))
+                metrics.update(evaluate.open_loop_metrics(wm, vae, data.sample(wc.batch, rng, device), wc.seq_len // 2))
+                rundir.append_jsonl(log_path, metrics)
+                bar.write(log_line(metrics))
+                t0 = time.time()
+            if tc.fidelity_every and (step + 1) % tc.fidelity_every == 0:
+                rundir.append_jsonl(fidelity_path, fidelity.benchmark(models, fidelity_sources, step + 1, run_dir))
+            if (step + 1) % tc.checkpoint_every == 0:
+                saved = keep(step + 1)
+            continue
         post_feat = wm.feat(post).detach()  # (B, T, F)
         # Eq. 7: the temporal distance on pairs of posterior states, and of states and encoder goals (ours)
         with torch.no_grad():  # the goal encoder's g of every frame (B, T, F), what GIIL-ZS feeds the policy, and of the last (B, F)
@@ -249,7 +271,7 @@ def pretrain(cfgs, run_dir, resume):
         update("dist_net", loss, "Eq. 7 distance loss")
         metrics.update(m2 | m3 | m7)
         # Eq. 4 after policy_start updates, once d gives a meaningful reward: the actor-critic in imagination, reward -d(s, g)
-        if step >= tc.policy_start:
+        if step >= tc.wm_steps + tc.policy_start:
             start, index = policy.sample_starts(post, ac.starts)
             goals = policy.sample_goals(post_feat, goal_feat, index, batch["is_first"], ac.goal_mix, ac.goal_near)
             a_loss, c_loss, m4 = policy.policy_losses(wm, dist_net, actor, critic, slow_critic, models["return_norm"], start, goals, ac)
@@ -267,16 +289,18 @@ def pretrain(cfgs, run_dir, resume):
             metrics.update(m4 | m_bc)
         if logged:
             metrics.update(step=step + 1, updates_per_s=tc.log_every / (time.time() - t0))
-            metrics.update(diagnostics(models, cfgs, data, rng, device, post, post_feat, goal_feat, batch["is_first"], step + 1))
+            metrics.update(diagnostics(models, cfgs, data, rng, device, post, post_feat, goal_feat, batch["is_first"], step + 1 - tc.wm_steps))
             rundir.append_jsonl(log_path, metrics)
             bar.write(log_line(metrics))
             t0 = time.time()
-        if (step + 1) % tc.checkpoint_every == 0 or step + 1 == tc.steps:
+        if tc.fidelity_every and (step + 1) % tc.fidelity_every == 0:
+            rundir.append_jsonl(fidelity_path, fidelity.benchmark(models, fidelity_sources, step + 1, run_dir))
+        if (step + 1) % tc.checkpoint_every == 0 or step + 1 == total:
             saved = keep(step + 1)
     if ac.bc and ac.bc_polish:  # ours: cloning on the final world model; the checkpoint keeps the unpolished actor to resume from
         unpolished = copy.deepcopy(actor.state_dict())
         cloning.polish(models, cfgs, data, device)
-        keep(tc.steps, actor_unpolished=unpolished)
+        keep(total, actor_unpolished=unpolished)
     final_report(run_dir, models, cfgs, held_out, device)
     print(f"wrote {ckpt_path}, {log_path}")
     return run_dir

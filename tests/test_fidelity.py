@@ -1,0 +1,101 @@
+"""fidelity.py: the benchmark on a toy where the world model is exact (cosine 1, error 0, no KL), its table and PNG,
+and the world-model stage of train.py: Eq. 2 and 3 alone, fidelity rows at their updates, resumed bit for bit."""
+import numpy as np
+import pytest
+import torch
+
+import fidelity
+import goal_vae
+import presets
+import world_model as W
+from conftest import train_args
+
+torch.set_num_threads(1)
+
+
+def exact_toy(E=3, L=40, obs_dim=5, action_dim=2, p_dim=8):
+    """A smoke world model whose posterior ignores the observation (post_in, post_out copied from the prior head), and
+    episodes it generates itself: o_t and p_t decoded from its own prior-mean states. Filtering and imagination then
+    follow the same states, so the model is exact on its episodes."""
+    torch.manual_seed(0)
+    wm = W.WorldModel(W.WorldModelConfig(**presets.PRESETS["wm"]["smoke"]), obs_dim, action_dim)
+    vae = goal_vae.GoalVAE(goal_vae.GoalVAEConfig(**presets.PRESETS["goal"]["smoke"]), p_dim, wm.cfg.deter, wm.cfg.stoch)
+    with torch.no_grad():
+        first, last = wm.prior_net[0], wm.prior_net[-1]
+        wm.post_in.weight.zero_()
+        wm.post_in.weight[:, : wm.cfg.deter] = first.weight
+        wm.post_in.bias.copy_(first.bias)
+        wm.post_out.load_state_dict(last.state_dict())
+        wm.img_in.weight.mul_(10)  # actions that move the state: holding o_t0 is then far from the episode
+        action = torch.rand(E, L, action_dim) * 2 - 1
+        action[:, 0] = 0
+        state, feats = wm.initial_state(E), []
+        for t in range(L):
+            state = wm.img_step(state, action[:, t], sample=False)
+            feats.append(wm.feat(state))
+        feat = torch.stack(feats, 1)
+        obs, p = wm.decode(feat), vae.decode(feat)
+    is_first = np.zeros(L, bool)
+    is_first[0] = True
+    episodes = [{"state": obs[e].numpy(), "action": action[e].numpy(), "is_first": is_first, "p": p[e].numpy()} for e in range(E)]
+    return wm, vae, episodes
+
+
+def test_an_exact_model_scores_cosine_one_and_error_zero():
+    wm, vae, episodes = exact_toy()
+    m = fidelity.measure(wm, vae, episodes, starts=(10, 20), ahead=15)
+    assert len(m["cos"]) == 15 and m["starts"] == 2 and m["episodes"] == 3
+    assert np.allclose(m["cos"], 1, atol=1e-5) and np.allclose(m["filtered"], 1, atol=1e-5)
+    assert max(m["error"]) < 1e-10 < 1e-5 < min(m["hold"])  # holding o_t0 is not the episode
+    assert m["kl"] < 1e-6
+
+
+def test_a_perturbed_model_loses_the_episode_and_short_episodes_shorten_the_horizon():
+    wm, vae, episodes = exact_toy()
+    with torch.no_grad():
+        wm.prior_net[-1].weight.add_(torch.randn_like(wm.prior_net[-1].weight))  # the prior no longer the data's, the filter still exact
+    m = fidelity.measure(wm, vae, episodes, starts=(10, 20), ahead=100)
+    assert len(m["cos"]) == 40 - 1 - 10  # as far as the first start can imagine
+    assert m["error"][-1] > 1e-8 and m["cos"][-1] < 0.999 and np.allclose(m["filtered"], 1, atol=1e-5)
+
+
+def test_table_and_png(tmp_path):
+    wm, vae, episodes = exact_toy(L=70)  # 59 steps ahead of t0 = 10: no column at 100
+    row = fidelity.benchmark({"world_model": wm, "goal_vae": vae}, {"walk": episodes}, 7, "toy")
+    table = fidelity.markdown([row])
+    assert "| toy | 7 | walk | 1.00 / 1.00 / - | 1.00 / 1.00 / - | 0.000 / 0.000 / - |" in table
+    assert fidelity.plot([row], str(tmp_path / "f.png")).endswith("f.png") and (tmp_path / "f.png").stat().st_size > 1000
+
+
+def test_world_model_stage_trains_eq2_and_eq3_alone_logs_fidelity_and_resumes_bit_for_bit(smoke_data, tmp_path, monkeypatch):
+    import checkpoint
+    import rundir
+    import train
+
+    cfgs = lambda: train.resolve_configs(train_args(data=smoke_data, wm_steps=4, steps=4, fidelity_every=2, checkpoint_every=2), "smoke")
+    whole = train.train(cfgs(), str(tmp_path / "whole"), resume=False)
+    rows = rundir.read_jsonl(str(tmp_path / "whole" / "fidelity.jsonl"))
+    assert [r["step"] for r in rows] == [2, 4, 6, 8] and set(rows[0]["sources"]) == {"stand", "walk", "run", "jump", "body"}
+    metrics = rundir.read_jsonl(str(tmp_path / "whole" / "metrics.jsonl"))
+    assert "dist_loss" not in metrics[0] and "actor_loss" not in metrics[1] and "actor_loss" in metrics[-1]  # the stage, then phase 1
+    # killed in the stage after its checkpoint at update 2 (at update 4's fidelity row), then resumed
+    benchmark, calls = fidelity.benchmark, []
+
+    def killed(*args):
+        calls.append(1)
+        if len(calls) == 2:
+            raise KeyboardInterrupt
+        return benchmark(*args)
+
+    monkeypatch.setattr(fidelity, "benchmark", killed)
+    part = str(tmp_path / "part")
+    with pytest.raises(KeyboardInterrupt):
+        train.train(cfgs(), part, resume=False)
+    monkeypatch.setattr(fidelity, "benchmark", benchmark)
+    train.train(cfgs(), part, resume=True)
+    a, b = checkpoint.load_run(whole)[1], checkpoint.load_run(part)[1]
+    assert all(torch.equal(x, y) for name in a for x, y in zip(a[name].state_dict().values(), b[name].state_dict().values()))
+    assert rundir.read_jsonl(str(tmp_path / "part" / "fidelity.jsonl")) == [dict(r, run=part) for r in rows]
+    # the stage may grow while the run is in it, not once it is past it
+    with pytest.raises(ValueError, match="past its world-model stage of 4 updates: pass --wm-steps 4"):
+        train.train(train.resolve_configs(train_args(data=smoke_data, wm_steps=6, steps=4), "smoke"), part, resume=True)
