@@ -69,7 +69,7 @@ def component_updates(preset="cpu", obs_dim=24, action_dim=6, p_dim=512, device=
     cfg = {name: checkpoint.COMPONENTS[name][0](**PRESETS[name][preset]) for name in ("wm", "goal", "dist", "ac")}
     obs_shape = obs_dim if cfg["wm"].obs == "state" else (64, 64, 3)
     wm = W.WorldModel(cfg["wm"], obs_shape, action_dim)
-    vae = goal_vae.GoalVAE(cfg["goal"], p_dim, cfg["wm"].deter, cfg["wm"].stoch)
+    vae = goal_vae.GoalVAE(cfg["goal"], p_dim, cfg["wm"].deter, wm.latent)
     dist_net = distance.DistanceNet(cfg["dist"], wm.feat_dim, wm.decoder if cfg["dist"].input == "obs" else None)
     actor = policy.Actor(cfg["ac"], wm.feat_dim, wm.feat_dim, action_dim)
     critic, slow_critic = policy.make_critics(cfg["ac"], wm.feat_dim, wm.feat_dim)

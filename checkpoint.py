@@ -70,7 +70,7 @@ def build_models(cfgs, obs_shape, action_dim, p_dim, device):
         raise ValueError("--dist-input obs reads decoded state vectors: with --obs pixels pass --dist-input feat")
     models = {
         "world_model": wm,
-        "goal_vae": goal_vae.GoalVAE(cfgs["goal"], p_dim, cfgs["wm"].deter, cfgs["wm"].stoch),
+        "goal_vae": goal_vae.GoalVAE(cfgs["goal"], p_dim, cfgs["wm"].deter, wm.latent),
         "dist_net": distance.DistanceNet(cfgs["dist"], wm.feat_dim, wm.decoder if cfgs["dist"].input == "obs" else None),
         "actor": policy.Actor(cfgs["ac"], wm.feat_dim, wm.feat_dim, action_dim),
         "return_norm": policy.ReturnNorm(cfgs["ac"].return_norm_decay),

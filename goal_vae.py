@@ -1,12 +1,15 @@
 """Eq. 3 and App. A: the goal VAE, goal encoder q_{phi^g}(s | p_t) into the world model's latent space, decoder p_{theta^g}(p_t | s).
 
     p_t (..., D) --encoder--> q(h | p_t) = N(h; mean_h, std_h)     App. A: NLL of the world model's h_t under it
-                              q(z | p_t) = N(z; mean_z, std_z)     Eq. 3: KL[q(z | p_t) || sg(q_phi(z_t | ...))]
+                              q(z | p_t) = P(z; stats_z)           Eq. 3: KL[q(z | p_t) || sg(q_phi(z_t | ...))]
                  s^g = (h, z) sampled --decoder--> p_hat (..., D) on the unit sphere
 
-The prior of Eq. 3 is the world model's posterior with a stop-gradient: this module reads `post` detached, so no
-gradient reaches the world model (App. A). The goal is g = feat(encode(p)) = [mean_h, mean_z], the encoder's
-means: it lives in the world model's feature space, so the distance network and the policy take it like a state.
+q(z | p_t) has the family P of the world model's z (world_model.make_latent: Gaussian, or categorical logits per
+variable), and Eq. 3's KL is the world model's latent.kl. The prior of Eq. 3 is the world model's posterior with a
+stop-gradient: this module reads `post` detached, so no gradient reaches the world model (App. A). The goal is
+g = feat(encode(p)) = [mean_h, E[z]], the encoder's means (a categorical z's: its probabilities, a continuous vector
+phase 2 can optimise): it lives in the world model's feature space, so the distance network and the policy take it
+like a state.
 
 The decoder likelihood p(p_t | s) is a von Mises-Fisher distribution on the unit sphere with mean direction
 p_hat = normalise(decoder(s)) and a fixed concentration kappa: -log p = kappa * (1 - cos(p_hat, p_t)) + const.
@@ -19,7 +22,7 @@ import torch
 import torch.nn as nn
 import torch.nn.functional as F
 
-from world_model import gaussian_kl, mlp
+from world_model import mlp
 
 
 @dataclass
@@ -41,29 +44,45 @@ def gaussian_nll(x, mean, std):
 class GoalVAE(nn.Module):
     """Goal encoder q_{phi^g}(s | p_t) and goal decoder p_{theta^g}(p_t | s); `loss` is Eq. 3 with App. A's h term."""
 
-    def __init__(self, cfg, feat_dim, deter, stoch):
-        """feat_dim: D of the video features p_t; deter, stoch: the world model's h and z sizes."""
+    def __init__(self, cfg, feat_dim, deter, latent):
+        """feat_dim: D of the video features p_t; deter: the world model's h size; latent: its z's family
+        (WorldModel.latent)."""
         super().__init__()
-        self.cfg, self.feat_dim, self.deter, self.stoch = cfg, feat_dim, deter, stoch
-        self.encoder = mlp(feat_dim, cfg.units, 2 * (deter + stoch), cfg.layers)  # mean and std of [h, z]
-        self.decoder = mlp(deter + stoch, cfg.units, feat_dim, cfg.layers)
+        # stoch: the width of z in feat (the world model's stoch, times discrete for a categorical z)
+        self.cfg, self.feat_dim, self.deter, self.stoch, self.latent = cfg, feat_dim, deter, latent.size, latent
+        assert latent.out_dim % 2 == 0, f"the encoder's output splits z's head in halves: {latent.out_dim} outputs"
+        self.encoder = mlp(feat_dim, cfg.units, 2 * deter + latent.out_dim, cfg.layers)  # mean_h, std_h and z's head
+        self.decoder = mlp(deter + self.stoch, cfg.units, feat_dim, cfg.layers)
 
     def distribution(self, p):
-        """q(s | p_t): p (..., D) -> mean, std (..., deter + stoch), ordered [h, z] like world_model.feat."""
+        """q(s | p_t): p (..., D) -> mean_h, std_h (..., deter) and q(z | p_t)'s stats (latent.stat_keys)."""
         assert p.shape[-1] == self.feat_dim, (p.shape, self.feat_dim)
-        mean, std = self.encoder(p).chunk(2, -1)
-        return mean, F.softplus(std) + self.cfg.min_std
+        # the encoder's outputs [mean_h, z's first half, std_h, z's second half]: a Gaussian z's [mean_h, mean_z, std_h, std_z]
+        (mean_h, z_a), (std_h, z_b) = (x.split([self.deter, self.latent.out_dim // 2], -1) for x in self.encoder(p).chunk(2, -1))
+        return mean_h, F.softplus(std_h) + self.cfg.min_std, self.latent.stats(torch.cat([z_a, z_b], -1))
 
     def encode(self, p):
-        """p (..., D) -> a latent state dict like the world model's (deterministic: the means), plus deter_std."""
-        mean, std = self.distribution(p)
-        deter, stoch = mean.split([self.deter, self.stoch], -1)
-        deter_std, stoch_std = std.split([self.deter, self.stoch], -1)
-        return {"deter": deter, "stoch": stoch, "mean": stoch, "std": stoch_std, "deter_std": deter_std}
+        """p (..., D) -> a latent state dict with the world model's state_keys (deterministic: stoch = E[z]), plus deter_std."""
+        mean_h, std_h, stats = self.distribution(p)
+        return {"deter": mean_h, "stoch": self.latent.mean(stats), **stats, "deter_std": std_h}
 
     def goal(self, p):
-        """The goal vector g = feat(encode(p)) = [mean_h, mean_z]: (..., D) -> (..., deter + stoch)."""
-        return self.distribution(p)[0]
+        """The goal vector g = feat(encode(p)) = [mean_h, E[z]]: (..., D) -> (..., deter + stoch)."""
+        mean_h, _, stats = self.distribution(p)
+        return torch.cat([mean_h, self.latent.mean(stats)], -1)
+
+    def _sample(self, mean_h, std_h, stats, noise):
+        """s^g = [h, z] ~ q(s | p_t) from a standard normal noise (..., deter + stoch): h = mean_h + std_h * eps, z = latent.sample."""
+        eps, noise_z = noise.split([self.deter, self.stoch], -1)
+        return torch.cat([mean_h + std_h * eps, self.latent.sample(stats, noise_z)], -1)
+
+    def sample_goals(self, p, n, generator=None, scale=1.0):
+        """n draws s^g ~ q(s | p) as goal vectors, from `generator`'s standard normal noise multiplied by `scale` (a
+        Gaussian's std times scale; a categorical z's draws flatter for scale > 1): p (1, D) -> (n, deter + stoch)."""
+        assert p.shape == (1, self.feat_dim), p.shape
+        mean_h, std_h, stats = self.distribution(p)
+        noise = torch.randn(n, self.deter + self.stoch, generator=generator).to(mean_h.device)
+        return self._sample(mean_h, std_h, stats, scale * noise)
 
     def decode(self, feat):
         """p_hat, the mean direction of p(p_t | s): feat (..., deter + stoch) -> unit vectors (..., D)."""
@@ -72,14 +91,13 @@ class GoalVAE(nn.Module):
 
     def loss(self, p, post):  # Eq. 3
         """p (B, T, D) video features, post the world model's posterior (dict of (B, T, .)) -> (loss, metrics)."""
-        assert p.shape[:-1] == post["deter"].shape[:-1] and post["mean"].shape[-1] == self.stoch, (p.shape, post["deter"].shape)
+        assert p.shape[:-1] == post["deter"].shape[:-1] and post["stoch"].shape[-1] == self.stoch, (p.shape, post["deter"].shape)
         # sg(q_phi): the world model's posterior is a fixed target (App. A)
-        h, z_mean, z_std = post["deter"].detach(), post["mean"].detach(), post["std"].detach()
-        mean, std = self.distribution(p)  # (B, T, deter + stoch)
-        (mean_h, mean_z), (std_h, std_z) = mean.split([self.deter, self.stoch], -1), std.split([self.deter, self.stoch], -1)
-        kl = gaussian_kl(mean_z, std_z, z_mean, z_std)  # (B, T): KL[q_{phi^g}(z | p_t) || sg(q_phi)], z only (App. A)
+        h, post_stats = post["deter"].detach(), {k: post[k].detach() for k in self.latent.stat_keys}
+        mean_h, std_h, stats = self.distribution(p)  # (B, T, deter) twice, q(z | p_t)'s stats
+        kl = self.latent.kl(stats, post_stats)  # (B, T): KL[q_{phi^g}(z | p_t) || sg(q_phi)], z only (App. A)
         deter_nll = gaussian_nll(h, mean_h, std_h)  # (B, T): -log q_{phi^s}(h_t | p_t) replaces the KL on h (App. A)
-        s_g = mean + std * torch.randn_like(std)  # s^g ~ q_{phi^g}(s | p_t), reparameterised
+        s_g = self._sample(mean_h, std_h, stats, torch.randn(*p.shape[:-1], self.deter + self.stoch, device=p.device))  # s^g ~ q_{phi^g}(s | p_t)
         cos = (self.decode(s_g) * p).sum(-1)  # (B, T)
         recon = self.cfg.kappa * (1 - cos)  # -log vMF(p_t; p_hat, kappa) + const
         # Ours: the decoder also reads sg(posterior) states, the states phase 2 decodes (Eq. 5's imagined rollouts).

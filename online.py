@@ -48,11 +48,10 @@ def budget(cfg, candidates):
 
 @torch.no_grad()
 def posterior_goals(vae, p_last, n, seed):
-    """The 'posterior' candidates: q(s | p_T)'s mean (GIIL-ZS's goal) and n - 1 draws mean + std * eps of the goal
-    encoder's distribution, eps ~ N(0, I) from `seed`. p_last (D,) -> (n, F)."""
-    mean, std = vae.distribution(torch.as_tensor(p_last)[None])
-    eps = torch.randn(n - 1, mean.shape[-1], generator=torch.Generator().manual_seed(seed)).to(mean.device)
-    return torch.cat([mean, mean + std * eps])
+    """The 'posterior' candidates: q(s | p_T)'s mean (GIIL-ZS's goal) and n - 1 draws s^g ~ q(s | p_T) of the goal
+    encoder's distribution (a Gaussian's mean + std * eps), their noise from `seed`. p_last (D,) -> (n, F)."""
+    p = torch.as_tensor(p_last)[None]
+    return torch.cat([vae.goal(p), vae.sample_goals(p, n - 1, torch.Generator().manual_seed(seed))])
 
 
 def episode_features(models, env_list, goals, steps, obs_key, seed, encoder):

@@ -39,6 +39,7 @@ from presets import DATA
 # rates lie in (0, 1), the fields of POSITIVE above 0, any other float is >= 0.
 RANGES = {"seed": (0, None), "seed_steps": (0, None), "policy_start": (0, None), "wm_steps": (0, None), "fidelity_every": (0, None),
           "holdout_every": (2, None),  # 1 would hold out every episode
+          "discrete": (0, None), "unimix": (0, 1),  # discrete 0: a Gaussian z (world_model.make_latent)
           "finetune_policy": (0, 1), "video": (0, 1), "encoder_goals": (0, 1), "body_ratio": (0, 1),
           "goal_near": (0, 1), "bc_final": (0, 1), "bc_polish": (0, None),
           "gamma": (0, 1), "lambda_": (0, 1), "tau": (0, 1), "goal_mix": (0, 1), "slow_critic_rate": (0, 1), "return_norm_decay": (0, 1)}

@@ -7,7 +7,7 @@ start states and scored by the environment's task return (the true score, Eq. 8;
 never does):
   zs       the 10 demos' zero-shot goals q(s | p_T) (what GIIL-online searches now)
   q x1     10 samples of demo 0's goal distribution: mean + std * eps (the goal encoder's own uncertainty)
-  q x2     the same at twice the std
+  q x2     the same at twice the std (a categorical z: its noise doubled, flatter draws)
   mix      10 random convex combinations of the 10 zero-shot goals (Dirichlet(1) weights)
 Each candidate runs `episodes` episodes from shared start states (seeds A). The best of each set on A is then run
 again from fresh start states (seeds B) beside demo 0's zero-shot goal (GIIL-ZS (demo 0), GIIL-online's start):
@@ -43,11 +43,10 @@ def candidate_sets(vae, demo_p, n=10, seed=0):
     """{name: (n, F) goals} of the module docstring; demo_p (K, M, D) the cell's demos."""
     gen = torch.Generator().manual_seed(seed)
     last = torch.as_tensor(np.stack([p[-1] for p in demo_p]))
-    mean, std = vae.distribution(last[:1])
     zs = vae.goal(last)
     weights = torch.from_numpy(np.random.default_rng(seed).dirichlet(np.ones(len(zs)), n)).float()
-    return {"zs": zs[:n], "q x1": mean + std * torch.randn(n, mean.shape[-1], generator=gen),
-            "q x2": mean + 2 * std * torch.randn(n, mean.shape[-1], generator=gen), "mix": weights @ zs}
+    return {"zs": zs[:n], "q x1": vae.sample_goals(last[:1], n, gen),
+            "q x2": vae.sample_goals(last[:1], n, gen, scale=2.0), "mix": weights @ zs}
 
 
 @torch.no_grad()

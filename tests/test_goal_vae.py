@@ -1,8 +1,9 @@
-"""goal_vae.py: Eq. 3's terms against torch.distributions, no gradient into the world model, the goal in the world
-model's feature space, and a few updates that fit the encoder to the posterior."""
+"""goal_vae.py: Eq. 3's terms against torch.distributions for both latent families, no gradient into the world model,
+the goal in the world model's feature space, draws of q(s | p), and a few updates that fit the encoder to the posterior."""
+import pytest
 import torch
 import torch.nn.functional as F
-from torch.distributions import Independent, Normal, kl_divergence
+from torch.distributions import Independent, Normal, OneHotCategorical, kl_divergence
 
 import presets
 import world_model as W
@@ -12,16 +13,17 @@ torch.set_num_threads(1)
 D = 8
 
 
-def models():
-    cfg = W.WorldModelConfig(**presets.PRESETS["wm"]["smoke"])
+def models(discrete=0):
+    cfg = W.WorldModelConfig(**presets.PRESETS["wm"]["smoke"], discrete=discrete)
     world_model = W.WorldModel(cfg, 5, 2)
-    vae = GoalVAE(GoalVAEConfig(**presets.PRESETS["goal"]["smoke"]), D, cfg.deter, cfg.stoch)
+    vae = GoalVAE(GoalVAEConfig(**presets.PRESETS["goal"]["smoke"]), D, cfg.deter, world_model.latent)
     return world_model, vae
 
 
-def test_goal_vae_passes_no_gradient_to_the_world_model():
+@pytest.mark.parametrize("discrete", [0, 4])
+def test_goal_vae_passes_no_gradient_to_the_world_model(discrete):
     torch.manual_seed(0)
-    world_model, vae = models()
+    world_model, vae = models(discrete)
     batch = W.random_batch("state", 5, 2, 3, 6, p_dim=D)
     _, _, post = world_model.loss(batch)  # post still carries the world model's graph
     loss, _ = vae.loss(batch["p"], post)
@@ -30,17 +32,21 @@ def test_goal_vae_passes_no_gradient_to_the_world_model():
     assert all(p.grad is not None and p.grad.abs().sum() > 0 for p in vae.parameters())
 
 
-def test_eq3_terms_match_torch_distributions():
+@pytest.mark.parametrize("discrete", [0, 4])
+def test_eq3_terms_match_torch_distributions(discrete):
     torch.manual_seed(0)
-    _, vae = models()
-    B, T, H, Z = 3, 4, vae.deter, vae.stoch
+    world_model, vae = models(discrete)
+    latent, (B, T, H, Z) = vae.latent, (3, 4, vae.deter, vae.stoch)
     p = F.normalize(torch.randn(B, T, D), dim=-1)
-    post = {"deter": torch.randn(B, T, H), "stoch": torch.randn(B, T, Z), "mean": torch.randn(B, T, Z), "std": torch.rand(B, T, Z) + 0.1}
+    post_stats = latent.stats(2 * torch.randn(B, T, latent.out_dim))
+    post = {"deter": torch.randn(B, T, H), "stoch": latent.sample(post_stats), **post_stats}
     loss, metrics = vae.loss(p, post)
-    mean, std = vae.distribution(p)
-    mean_h, mean_z = mean.split([H, Z], -1)
-    std_h, std_z = std.split([H, Z], -1)
-    kl = kl_divergence(Independent(Normal(mean_z, std_z), 1), Independent(Normal(post["mean"], post["std"]), 1)).mean()
+    mean_h, std_h, stats = vae.distribution(p)
+    if discrete:  # q(z | p_t): logits per variable, as the world model's posterior
+        dist = lambda s: Independent(OneHotCategorical(probs=latent.mean(s).unflatten(-1, (world_model.cfg.stoch, discrete))), 1)
+    else:
+        dist = lambda s: Independent(Normal(s["mean"], s["std"]), 1)
+    kl = kl_divergence(dist(stats), dist(post_stats)).mean()
     nll = -Independent(Normal(mean_h, std_h), 1).log_prob(post["deter"]).mean()
     assert abs(metrics["goal_kl"] - kl.item()) < 1e-4
     assert abs(metrics["goal_deter_nll"] - nll.item()) < 1e-3
@@ -51,34 +57,63 @@ def test_eq3_terms_match_torch_distributions():
     assert abs(loss.item() - expected) < 1e-3
 
 
-def test_encode_goal_decode():
+@pytest.mark.parametrize("discrete", [0, 4])
+def test_encode_goal_decode(discrete):
     torch.manual_seed(0)
-    world_model, vae = models()
+    world_model, vae = models(discrete)
     p = F.normalize(torch.randn(5, 7, D), dim=-1)
     state = vae.encode(p)
-    assert state["deter"].shape == (5, 7, vae.deter) and state["stoch"].shape == (5, 7, vae.stoch)
+    assert set(state) == set(world_model.state_keys) | {"deter_std"}
+    assert state["deter"].shape == (5, 7, vae.deter) and state["stoch"].shape == (5, 7, vae.stoch) == (5, 7, world_model.latent.size)
     goal = vae.goal(p)
     assert torch.equal(goal, world_model.feat(state)) and goal.shape == (5, 7, world_model.feat_dim)
+    if discrete:  # E[z]: each variable's probabilities
+        assert torch.allclose(state["stoch"].unflatten(-1, (-1, discrete)).sum(-1), torch.ones(5, 7, world_model.cfg.stoch))
+    # an imagination start: the world model steps from the goal encoder's state
+    step = world_model.img_step({k: v[:, 0] for k, v in state.items()}, torch.zeros(5, 2))
+    assert world_model.feat(step).shape == (5, world_model.feat_dim)
     p_hat = vae.decode(goal)
     assert p_hat.shape == (5, 7, D) and torch.allclose(p_hat.norm(dim=-1), torch.ones(5, 7), atol=1e-5)
 
 
-def test_a_few_updates_fit_the_encoder_to_the_posterior():
+@pytest.mark.parametrize("discrete", [0, 4])
+def test_sample_goals_draws_q_of_s_given_p(discrete):
+    """n draws s^g ~ q(s | p): h = mean_h + scale std_h eps; z a latent.sample from the same noise (Gaussian: mean + std eps)."""
+    world_model, vae = models(discrete)
+    p = F.normalize(torch.randn(1, D, generator=torch.Generator().manual_seed(0)), dim=-1)
+    goals = vae.sample_goals(p, 6, torch.Generator().manual_seed(3), scale=2.0)
+    eps = 2.0 * torch.randn(6, vae.deter + vae.stoch, generator=torch.Generator().manual_seed(3))
+    mean_h, std_h, stats = vae.distribution(p)
+    assert goals.shape == (6, world_model.feat_dim) and torch.equal(goals[:, :vae.deter], mean_h + std_h * eps[:, :vae.deter])
+    assert torch.equal(goals[:, vae.deter:], vae.latent.sample(stats, eps[:, vae.deter:]))
+    if not discrete:  # the goal encoder's Gaussian over [h, z], mean + scale * std * eps
+        assert torch.allclose(goals, vae.goal(p) + torch.cat([std_h, stats["std"]], -1) * eps)
+    else:  # one-hot draws of each variable
+        z = goals[:, vae.deter:].unflatten(-1, (-1, discrete))
+        assert torch.equal(z.sum(-1), torch.ones(6, world_model.cfg.stoch)) and set(z.unique().tolist()) == {0.0, 1.0}
+
+
+@pytest.mark.parametrize("discrete, updates", [(0, 150), (4, 300)])  # the categorical KL falls more slowly
+def test_a_few_updates_fit_the_encoder_to_the_posterior(discrete, updates):
     """A posterior that is a fixed function of p_t: the KL, the h likelihood and the decoder all improve."""
     torch.manual_seed(0)
-    _, vae = models()
-    H, Z = vae.deter, vae.stoch
-    proj = torch.randn(D, H + Z)
+    _, vae = models(discrete)
+    latent, H = vae.latent, vae.deter
+    proj = torch.randn(D, H + latent.size)  # a categorical's logits: its size
 
     def sample(n):
         p = F.normalize(torch.randn(n, 1, D), dim=-1)
         target = torch.tanh(p @ proj)
-        return p, {"deter": target[..., :H], "stoch": target[..., H:], "mean": target[..., H:], "std": torch.full((n, 1, Z), 0.2)}
+        if discrete:  # sharp categoricals: logits up to +-3
+            stats = latent.stats(3 * target[..., H:])
+        else:
+            stats = {"mean": target[..., H:], "std": torch.full((n, 1, latent.size), 0.2)}
+        return p, {"deter": target[..., :H], "stoch": latent.mode(stats), **stats}
 
     p, post = sample(256)
     before = vae.loss(p, post)[1]
     opt = torch.optim.Adam(vae.parameters(), lr=3e-3)
-    for _ in range(150):
+    for _ in range(updates):
         loss = vae.loss(*sample(64))[0]
         opt.zero_grad()
         loss.backward()
