@@ -148,7 +148,7 @@ def finetune_goal(models, cfgs, ic, ot_cfg, p_goal, demo_p, seed, device, optim_
         t0 = torch.randint(M - ac.horizon - 1, (ic.starts,), device=device)
         with torch.no_grad():
             start = models["goal_vae"].encode(demo_p[torch.randint(K, (ic.starts,), device=device), t0].float())
-        start = {k: start[k] for k in ("deter", "stoch", "mean", "std")}
+        start = {k: start[k] for k in models["world_model"].state_keys}
         gi_loss, ot_loss, metrics = goal_inference_loss(models, critic_ot, slow_ot, goal, start, demo_p, cfgs, ot_cfg, t0 + 1)
         for opt, loss, what in ((opt_goal, gi_loss, "Eq. 5 L_GI"), (opt_ot, ot_loss, "V_ot loss")):
             checkpoint.checked_step(opt, loss, f"GIIL-FT seed {seed}: {what}", step, stop)

@@ -6,7 +6,7 @@ the benchmark's seeds) with the state the actor reads computed three ways:
   plain    the benchmark's own: one filter over the whole 500-step episode, z_t sampled (evaluate.run_episodes)
   window   the filter restarted at every step over the last W steps only, as training's W-step segments see it: a
            state the actor has been trained on, whatever a long filter drifts to
-  mean     one filter over the whole episode with z_t the posterior mean instead of a sample
+  mean     one filter over the whole episode with z_t the posterior's mode (a Gaussian's mean) instead of a sample
 Run from the repository root:
 
     python probes/filter_probe.py agents/stickman --data data/late [--window 50] [--mean]
@@ -29,7 +29,7 @@ import rundir  # noqa: E402
 @torch.no_grad()
 def run_filtered(env_list, models, goals, steps, seed, window=0, mean=False):
     """evaluate.run_episodes' policy episodes, the state filtered over the last `window` steps afresh at every step
-    (0: carried over the whole episode), with z_t the posterior mean if `mean` -> returns (N,)."""
+    (0: carried over the whole episode), with z_t the posterior's mode if `mean` -> returns (N,)."""
     wm, actor = models["world_model"], models["actor"]
     N = len(env_list)
     torch.manual_seed(seed)
@@ -47,7 +47,7 @@ def run_filtered(env_list, models, goals, steps, seed, window=0, mean=False):
             post, _ = wm.observe(torch.as_tensor(obs)[:, None], torch.as_tensor(action)[:, None], torch.full((N, 1), t == 0), state)
         state = {k: v[:, -1] for k, v in post.items()}
         if mean:
-            state["stoch"] = state["mean"]
+            state["stoch"] = wm.latent.mode(state)
         if t == steps:
             break
         action = actor.act(wm.feat(state), goals).numpy()
@@ -62,7 +62,7 @@ if __name__ == "__main__":
     parser.add_argument("run")
     parser.add_argument("--data", default=None, help="the demos' folder (default: the run's)")
     parser.add_argument("--window", type=int, default=0, help="filter over the last W steps afresh at every step (0: the whole episode)")
-    parser.add_argument("--mean", action="store_true", help="z_t the posterior mean instead of a sample")
+    parser.add_argument("--mean", action="store_true", help="z_t the posterior's mode (a Gaussian's mean) instead of a sample")
     args = parser.parse_args()
     torch.set_num_threads(1)
     rundir.fast_matmul()  # as the benchmark: the plain reading then gives train.py --evaluate's number

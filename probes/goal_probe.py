@@ -63,7 +63,7 @@ def imagined_j(models, start, goal, horizon, demo_p, ot_cfg, offsets=None, mean_
     goals = goal.expand(N, -1)
     torch.manual_seed(seed)  # the same imagination noise for every goal
     if mean_action:  # the actor's tanh(mean), as it acts in the env (policy.Actor.act at temperature 0)
-        state, feats = {k: start[k] for k in ("deter", "stoch", "mean", "std")}, [wm.feat(start)]
+        state, feats = {k: start[k] for k in wm.state_keys}, [wm.feat(start)]
         for _ in range(horizon):
             state = wm.img_step(state, actor.act(feats[-1], goals), sample=not prior_mean)
             feats.append(wm.feat(state))
@@ -81,7 +81,7 @@ def replayed(models, post, goals):
     wm, actor = models["world_model"], models["actor"]
     actions = actor.act(wm.feat(post)[:, :-1].flatten(0, 1), goals.repeat_interleave(post["deter"].shape[1] - 1, 0))
     actions = actions.view(len(goals), -1, actions.shape[-1])  # (G, T, A)
-    state, feats = {k: v[:, 0] for k, v in post.items() if k in ("deter", "stoch", "mean", "std")}, [wm.feat({k: v[:, 0] for k, v in post.items()})]
+    state, feats = {k: post[k][:, 0] for k in wm.state_keys}, [wm.feat({k: v[:, 0] for k, v in post.items()})]
     for t in range(actions.shape[1]):
         state = wm.img_step(state, actions[:, t], sample=False)
         feats.append(wm.feat(state))
@@ -120,7 +120,7 @@ def probe_cell(models, cfgs, encoder, task, demo_p, seeds, ot_cfg, steps, n_star
     t0 = torch.randint(M - cfgs["ac"].horizon - 1, (n_starts,), generator=gen)
     with torch.no_grad():
         demo_start = vae.encode(demo_t[torch.randint(K, (n_starts,), generator=gen), t0])
-    demo_start = {k: demo_start[k] for k in ("deter", "stoch", "mean", "std")}
+    demo_start = {k: demo_start[k] for k in wm.state_keys}
     own_start = {k: v[torch.randint(len(pool["deter"]), (n_starts,), generator=gen)] for k, v in pool.items()}
     H = cfgs["ac"].horizon
     out = {obj: [] for obj in OBJECTIVES}

@@ -37,7 +37,7 @@ def imagined_ot(models, cfgs, goals, demo_p, starts, seed=0):
     t0 = torch.randint(M - ac.horizon - 1, (starts,), generator=g)
     with torch.no_grad():
         start = vae.encode(demo_p[torch.randint(K, (starts,), generator=g), t0])
-        start = {k: start[k] for k in ("deter", "stoch", "mean", "std")}
+        start = {k: start[k] for k in models["world_model"].state_keys}
         out = []
         for goal in goals:
             torch.manual_seed(seed)  # the same imagination noise for every goal
