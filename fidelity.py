@@ -14,8 +14,18 @@ prior imagines 100 steps open loop with the recorded actions (the latent's mode,
 and the held-out ELBO terms of Eq. 2 (recon, KL per step) on those episodes. train.py runs it every `fidelity_every`
 updates into runs/<name>/fidelity.jsonl (a curve against updates); this command benchmarks a run's checkpoint.
 
+--ranking is the functional test, for a trained agent (world model and policy): on a same-body cell, does Eq. 5's
+imagined objective rank goals as reality does? Candidates: the zero-shot goals q(s | p_T) of the cell's 10 demos and
+10 draws of q(s | p_T) of its first demo (online.posterior_goals), whose outcomes differ. Each goal acts in the real
+environment from the same `--episodes` start states (env seeds 60000 + i); its real score is Eq. 8's, averaged. Eq. 5's
+J of a goal is the mean OT reward of the frozen policy's imagined rollouts, as GIIL-FT computes it (imitate.py): 256
+starts from goal-encoder states of demo frames t0, `horizon` steps, matched against the demo frames after t0; every goal
+from the same starts and imagination noise. Reported: Spearman (J, real score) over the 20 goals, and the cap the real
+score's own noise puts on it: sqrt of its split-half reliability (even against odd episodes, Spearman-Brown).
+
     python fidelity.py agents/walker [--out docs/results/fidelity_walker.jsonl]
     python fidelity.py --table docs/results/fidelity_walker.jsonl [--png docs/fidelity_walker.png]
+    python fidelity.py agents/walker --ranking [--settings SE-SV] [--episodes 10] [--out docs/results/ranking_walker.jsonl]
 """
 import argparse
 import os
@@ -26,7 +36,12 @@ import torch
 import checkpoint
 import collect
 import envs
+import evaluate
+import online
+import ot_reward
+import policy
 import rundir
+import tables
 
 STARTS = (10, 110, 210, 310)  # t0: where imagination leaves the filter (ours: 4 per 500-step episode, >= 10 steps of context)
 AHEAD = 100  # steps imagined from each start
@@ -131,15 +146,109 @@ def plot(rows, path):
     return path
 
 
+def spearman(a, b):
+    """Rank correlation of two 1-d sequences (no ties expected: real-valued scores)."""
+    ra, rb = np.argsort(np.argsort(a)), np.argsort(np.argsort(b))
+    return float(np.corrcoef(ra, rb)[0, 1])
+
+
+@torch.no_grad()
+def imagined_objective(models, cfgs, goals, demo_p, ot_cfg, starts=256, seed=0):
+    """Eq. 5's J of each goal: the mean OT reward r^ot of the frozen policy's imagined rollouts (the quantity L_GI's
+    lambda-returns estimate), from goal-encoder states of demo frames t0 matched against the frames after t0, as
+    imitate.finetune_goal; every goal from the same starts and noise. goals (G, F), demo_p (K, M, D) -> (G,)."""
+    wm, vae, actor, H = models["world_model"], models["goal_vae"], models["actor"], cfgs["ac"].horizon
+    demo_p = torch.as_tensor(demo_p, dtype=torch.float64)
+    K, M = demo_p.shape[:2]
+    gen = torch.Generator().manual_seed(seed)
+    t0 = torch.randint(M - H - 1, (starts,), generator=gen)
+    start = vae.encode(demo_p[torch.randint(K, (starts,), generator=gen), t0].float())
+    start = {k: start[k] for k in wm.state_keys}
+    out = []
+    with torch.random.fork_rng(devices=[]):
+        for goal in goals:
+            torch.manual_seed(seed)  # the same imagination noise for every goal
+            feat = policy.rollout(wm, actor, start, goal.expand(starts, -1), H)[0]  # (N, H + 1, F)
+            out.append(ot_reward.ot_reward(vae.decode(feat[:, 1:]), demo_p, ot_cfg, t0 + 1)[0].mean().item())
+    return np.array(out)
+
+
+def real_scores(models, cfgs, task, goals, episodes, first_seed=60_000):
+    """Eq. 8's score of each goal (G, F) in the real environment, every goal from the same start states (env seeds
+    first_seed + i) -> (episodes, G)."""
+    tc = cfgs["train"]
+    steps = tc.eval_steps  # the goal-reaching benchmark's episode: 500 agent steps, the whole episode, at the cpu preset
+    env_list = [envs.make_env(tc.env, task) for _ in range(len(goals))]
+    out = []
+    for i in range(episodes):
+        returns, _ = evaluate.run_episodes(env_list, models, goals, steps, cfgs["wm"].obs, [first_seed + i] * len(goals))
+        out.append([evaluate.episode_score(task, r, steps) for r in returns])
+    for env in env_list:
+        env.close()
+    return np.array(out)
+
+
+def rank_goals(models, cfgs, task, demo_p, episodes, ot_cfg, draws=10):
+    """The functional test of one cell (module docstring) -> a row without its run and cell."""
+    vae = models["goal_vae"]
+    with torch.no_grad():
+        goals = torch.cat([vae.goal(torch.as_tensor(demo_p[:, -1])), online.posterior_goals(vae, demo_p[0, -1], draws + 1, seed=0)[1:]])
+    real = real_scores(models, cfgs, task, goals, episodes)  # (episodes, G)
+    j = imagined_objective(models, cfgs, goals, demo_p, ot_cfg)
+    half = spearman(real[0::2].mean(0), real[1::2].mean(0))
+    reliability = 2 * half / (1 + half)  # Spearman-Brown: the reliability of the mean over all episodes
+    return {"episodes": episodes, "real": real.mean(0).round(2).tolist(), "eq5": j.round(5).tolist(),
+            "spearman": round(spearman(j, real.mean(0)), 3), "reliability": round(reliability, 3),
+            "cap": round(float(np.sqrt(max(reliability, 0))), 3)}
+
+
+def ranking(run, step, cfgs, models, settings, episodes, out):
+    """rank_goals on each same-body cell of `settings` not yet in `out` for this run at this update, a row appended per cell."""
+    if any(w not in ("SE-SV", "SE-CV") for w in settings):
+        raise ValueError(f"--settings {','.join(settings)}: the ranking is measured on same-body cells (SE-SV, SE-CV); the "
+                         "cross-domain cells are the test set, never used to choose")
+    if episodes < 2:
+        raise ValueError(f"--episodes {episodes}: must be >= 2 (the cap splits them in halves)")
+    agent, data = cfgs["train"].env, cfgs["train"].data
+    done = {(r["run"], r["step"], r["task"], r["setting"]) for r in rundir.read_jsonl(out)}
+    for task, where in tables.cells(agent):
+        if where not in settings or (run, step, task, where) in done:
+            continue
+        demo, view = tables.demo_of(agent, task, where)
+        demo_p = np.stack([d["p"] for d in collect.load_folder(os.path.join(data, "demos", f"{demo}_{view}"), ("p",))])
+        row = {"run": run, "step": step, "task": task, "setting": where, **rank_goals(models, cfgs, task, demo_p, episodes, ot_reward.OTConfig())}
+        rundir.append_jsonl(out, row)
+        print(f"{where} {task}: Spearman(Eq. 5's J, real score) {row['spearman']:.2f} (cap {row['cap']:.2f}), real scores "
+              f"{min(row['real']):.1f}..{max(row['real']):.1f}", flush=True)
+
+
+def ranking_markdown(rows):
+    out = ["| run | update | cell | real score: mean (min..max) | Spearman(J, real) | cap |", "|---|---|---|---|---|---|"]
+    for r in rows:
+        out.append(f"| {r['run']} | {r['step']} | {r['setting']} {r['task']} | {np.mean(r['real']):.1f} ({min(r['real']):.1f}..{max(r['real']):.1f}) "
+                   f"| {r['spearman']:.2f} | {r['cap']:.2f} |")
+    for run in dict.fromkeys(r["run"] for r in rows):
+        sel = [r for r in rows if r["run"] == run]
+        out.append(f"| {run} | | mean of {len(sel)} cells | | **{np.mean([r['spearman'] for r in sel]):.2f}** | {np.mean([r['cap'] for r in sel]):.2f} |")
+    return "\n".join(out)
+
+
 def main():
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0], allow_abbrev=False)
     parser.add_argument("run", nargs="?", help="the run whose world model is benchmarked (none with --table)")
     parser.add_argument("--out", help="append the row to this JSONL (default: docs/results/fidelity_<body>.jsonl)")
     parser.add_argument("--table", nargs="+", metavar="JSONL", help="print the markdown table of these rows and stop")
     parser.add_argument("--png", help="with --table: also plot the last row of each run to this PNG")
+    parser.add_argument("--ranking", action="store_true", help="the functional test: Eq. 5's J against real scores (default --out "
+                        "docs/results/ranking_<body>.jsonl; cells already there are skipped)")
+    parser.add_argument("--settings", default="SE-SV,SE-CV", help="with --ranking: the same-body cells (never the cross-domain ones)")
+    parser.add_argument("--episodes", type=int, default=10, help="with --ranking: real episodes per goal, shared start states")
     args = parser.parse_args()
     if args.table:
         rows = [r for path in args.table for r in rundir.read_jsonl(path)]
+        if rows and "spearman" in rows[0]:
+            print(ranking_markdown(rows))
+            return
         print(markdown(rows))
         if args.png:
             print("wrote", plot(rows, args.png))
@@ -148,6 +257,9 @@ def main():
         parser.error("pass a run folder (e.g. agents/walker) or --table JSONL ...")
     torch.set_num_threads(1)
     cfgs, models, ckpt = checkpoint.load_run(args.run)
+    if args.ranking:
+        ranking(args.run, ckpt["step"], cfgs, models, args.settings.split(","), args.episodes, args.out or f"docs/results/ranking_{cfgs['train'].env}.jsonl")
+        return
     row = benchmark(models, held_out_episodes(cfgs), ckpt["step"], args.run)
     out = args.out or f"docs/results/fidelity_{cfgs['train'].env}.jsonl"
     rundir.append_jsonl(out, row)

@@ -13,7 +13,7 @@ from conftest import train_args
 torch.set_num_threads(1)
 
 
-def exact_toy(E=3, L=40, obs_dim=5, action_dim=2, p_dim=8):
+def exact_toy(E=3, L=40, obs_dim=5, action_dim=2, p_dim=8, discrete=0):
     """A smoke world model whose posterior ignores the observation (post_in, post_out copied from the prior head), and
     episodes it generates itself: o_t and p_t decoded from its own prior-mean states. Filtering and imagination then
     follow the same states, so the model is exact on its episodes."""
@@ -41,8 +41,9 @@ def exact_toy(E=3, L=40, obs_dim=5, action_dim=2, p_dim=8):
     return wm, vae, episodes
 
 
-def test_an_exact_model_scores_cosine_one_and_error_zero():
-    wm, vae, episodes = exact_toy()
+@pytest.mark.parametrize("discrete", [0, 4])  # a Gaussian z, a categorical z
+def test_an_exact_model_scores_cosine_one_and_error_zero(discrete):
+    wm, vae, episodes = exact_toy(discrete=discrete)
     m = fidelity.measure(wm, vae, episodes, starts=(10, 20), ahead=15)
     assert len(m["cos"]) == 15 and m["starts"] == 2 and m["episodes"] == 3
     assert np.allclose(m["cos"], 1, atol=1e-5) and np.allclose(m["filtered"], 1, atol=1e-5)
@@ -99,3 +100,22 @@ def test_world_model_stage_trains_eq2_and_eq3_alone_logs_fidelity_and_resumes_bi
     # the stage may grow while the run is in it, not once it is past it
     with pytest.raises(ValueError, match="past its world-model stage of 4 updates: pass --wm-steps 4"):
         train.train(train.resolve_configs(train_args(data=smoke_data, wm_steps=6, steps=4), "smoke"), part, resume=True)
+
+
+def test_ranking_rows_on_a_smoke_agent(smoke_run, tmp_path):
+    """The functional test end to end: one row per same-body cell with 20 goals' real scores and Eq. 5's J, a cell
+    already in the file is skipped, and the cross-domain cells are refused (the test set)."""
+    import checkpoint
+
+    cfgs, models, ckpt = checkpoint.load_run(smoke_run)
+    out = str(tmp_path / "ranking.jsonl")
+    fidelity.ranking(smoke_run, ckpt["step"], cfgs, models, ["SE-SV"], 2, out)
+    rows = fidelity.rundir.read_jsonl(out)
+    assert [(r["task"], r["setting"]) for r in rows] == [(t, "SE-SV") for t in ("stand", "walk", "run", "jump")]
+    # the 2 smoke demos' goals and 10 draws
+    assert all(len(r["real"]) == len(r["eq5"]) == 2 + 10 and -1 <= r["spearman"] <= 1 and 0 <= r["cap"] <= 1 for r in rows)
+    fidelity.ranking(smoke_run, ckpt["step"], cfgs, models, ["SE-SV"], 2, out)
+    assert len(fidelity.rundir.read_jsonl(out)) == 4
+    assert "mean of 4 cells" in fidelity.ranking_markdown(rows)
+    with pytest.raises(ValueError, match="--settings SE-SV,CE-SV: the ranking is measured on same-body cells"):
+        fidelity.ranking(smoke_run, ckpt["step"], cfgs, models, ["SE-SV", "CE-SV"], 2, out)
