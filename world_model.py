@@ -133,7 +133,10 @@ class CategoricalLatent:
         logits = stats["logits"].unflatten(-1, (self.stoch, self.discrete))  # (..., stoch, discrete)
         if noise is None:
             noise = torch.randn_like(stats["logits"])
-        gumbel = -torch.log(-torch.special.log_ndtr(noise.unflatten(-1, (self.stoch, self.discrete))))
+        # u = Phi(noise) through ndtr, clamped (1e-12: noise below -7; 1 - 1e-7: Gumbel values above 16, each about 1e-7
+        # likely): several times cheaper than log_ndtr, and this runs at every step of observe's loop
+        u = torch.special.ndtr(noise.unflatten(-1, (self.stoch, self.discrete))).clamp(1e-12, 1 - 1e-7)
+        gumbel = -torch.log(-torch.log(u))
         return self._straight_through(F.one_hot((logits + gumbel).argmax(-1), self.discrete), logits.softmax(-1))
 
     def mode(self, stats):
