@@ -19,8 +19,8 @@ PRESETS = {
     "wm": {
         "smoke": dict(deter=16, stoch=4, hidden=16, units=16, cnn_depth=4, batch=4, seq_len=8),  # ours: toy
         "cpu": {},
-        # GenRL's sizes (Mazzaglia et al. 2024) on the paper's pixels; deviation: z is 32 Gaussian units, not GenRL's 32 x 32 discrete latent
-        "paper": dict(obs="pixels", deter=1024, stoch=32, hidden=1024, units=1024, cnn_depth=48, batch=48, seq_len=48),
+        # GenRL's sizes and latent (Mazzaglia et al. 2024) on the paper's pixels: z 32 categoricals of 32 classes (DreamerV2)
+        "paper": dict(obs="pixels", deter=1024, stoch=32, discrete=32, hidden=1024, units=1024, cnn_depth=48, batch=48, seq_len=48),
     },
     "goal": {"smoke": dict(units=16), "cpu": {}, "paper": dict(units=1024)},  # ours: toy; paper: the world model's width (GenRL)
     "dist": {
