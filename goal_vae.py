@@ -57,7 +57,7 @@ class GoalVAE(nn.Module):
     def distribution(self, p):
         """q(s | p_t): p (..., D) -> mean_h, std_h (..., deter) and q(z | p_t)'s stats (latent.stat_keys)."""
         assert p.shape[-1] == self.feat_dim, (p.shape, self.feat_dim)
-        # the encoder's outputs [mean_h, z's first half, std_h, z's second half]: a Gaussian z's [mean_h, mean_z, std_h, std_z]
+        # outputs [mean_h, z's head's first half, std_h, its second half]: a Gaussian z's [mean_h, mean_z, std_h, std_z], as saved
         (mean_h, z_a), (std_h, z_b) = (x.split([self.deter, self.latent.out_dim // 2], -1) for x in self.encoder(p).chunk(2, -1))
         return mean_h, F.softplus(std_h) + self.cfg.min_std, self.latent.stats(torch.cat([z_a, z_b], -1))
 
