@@ -118,6 +118,20 @@ def markdown(rows):
     return "\n".join(out)
 
 
+def curve_markdown(rows):
+    """One line per row (a run at an update), for a learning curve: the cosine imagined at each horizon averaged over the
+    four tasks' demos, at 50 steps per source, and the held-out recon of D_body."""
+    h = " / ".join(map(str, HORIZONS))
+    sources = list(rows[0]["sources"])
+    out = [f"| run | update | demos' cos at {h} | cos at 50: " + " / ".join(sources) + " | D_body recon / KL |", "|---|---|---|---|---|"]
+    for r in rows:
+        m = r["sources"]
+        demos = [np.mean([m[t]["cos"][k - 1] for t in envs.TASKS]) if all(k <= len(m[t]["cos"]) for t in envs.TASKS) else None for k in HORIZONS]
+        out.append(f"| {r['run']} | {r['step']} | " + " / ".join("-" if v is None else f"{v:.2f}" for v in demos) + " | "
+                   + " / ".join(at(m[name]["cos"], 50, 2) for name in sources) + f" | {m['body']['recon']:.2f} / {m['body']['kl']:.2f} |")
+    return "\n".join(out)
+
+
 def plot(rows, path):
     """The picture to look at first: cosine against steps ahead per source, imagined (solid) beside filtered (dashed),
     the last row of each run."""
@@ -239,6 +253,7 @@ def main():
     parser.add_argument("--out", help="append the row to this JSONL (default: docs/results/fidelity_<body>.jsonl)")
     parser.add_argument("--table", nargs="+", metavar="JSONL", help="print the markdown table of these rows and stop")
     parser.add_argument("--png", help="with --table: also plot the last row of each run to this PNG")
+    parser.add_argument("--curve", action="store_true", help="with --table: one line per row (a learning curve), not one per source")
     parser.add_argument("--ranking", action="store_true", help="the functional test: Eq. 5's J against real scores (default --out "
                         "docs/results/ranking_<body>.jsonl; cells already there are skipped)")
     parser.add_argument("--settings", default="SE-SV,SE-CV", help="with --ranking: the same-body cells (never the cross-domain ones)")
@@ -249,7 +264,7 @@ def main():
         if rows and "spearman" in rows[0]:
             print(ranking_markdown(rows))
             return
-        print(markdown(rows))
+        print(curve_markdown(rows) if args.curve else markdown(rows))
         if args.png:
             print("wrote", plot(rows, args.png))
         return
