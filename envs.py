@@ -166,6 +166,21 @@ def observed_posture(body, obs):
     height = -1 - make_env(body, "stand").physics.model.nv
     return posture(body, obs[..., height], obs[..., 0])
 
+def observed_reward(body, task, obs):
+    """task_reward read from state observations alone (..., obs_dim), for decoded imagined states (fidelity.py): the
+    torso's x velocity (qvel of rootx, at obs[-nv + 1]) stands for the centre of mass's, and jump's lift counts without
+    its airborne test (no contacts in an observation). An approximation of the reward, not the environment's."""
+    nv = make_env(body, "stand").physics.model.nv
+    height, stand = obs[..., -1 - nv], observed_posture(body, obs)
+    if task == "stand":
+        return stand
+    if task == "jump":
+        return stand * (5 * np.clip((height - STAND_HEIGHT[body]) / JUMP_RISE, 0.0, 1.0) + 1) / 6
+    speed = MOVE_SPEED[task]
+    move = rewards.tolerance(obs[..., -nv + 1], bounds=(speed, float("inf")), margin=speed / 2, value_at_margin=0.5, sigmoid="linear")
+    return stand * (5 * move + 1) / 6
+
+
 def task_reward(physics, body, task):
     """The shared reward of one control step (module docstring); equals dm_control's walker for stand/walk/run."""
     height = physics.named.data.xpos["torso", "z"]

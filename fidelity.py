@@ -167,10 +167,12 @@ def spearman(a, b):
 
 
 @torch.no_grad()
-def imagined_objective(models, cfgs, goals, demo_p, ot_cfg, starts=256, seed=0):
+def imagined_objective(models, cfgs, task, goals, demo_p, ot_cfg, starts=256, seed=0):
     """Eq. 5's J of each goal: the mean OT reward r^ot of the frozen policy's imagined rollouts (the quantity L_GI's
     lambda-returns estimate), from goal-encoder states of demo frames t0 matched against the frames after t0, as
-    imitate.finetune_goal; every goal from the same starts and noise. goals (G, F), demo_p (K, M, D) -> (G,)."""
+    imitate.finetune_goal; every goal from the same starts and noise. Beside it, a probe of the imagination alone: the
+    mean task reward of the same rollouts' decoded states (envs.observed_reward; state observations only).
+    goals (G, F), demo_p (K, M, D) -> J (G,), task reward (G,) (NaN with pixel observations)."""
     wm, vae, actor, H = models["world_model"], models["goal_vae"], models["actor"], cfgs["ac"].horizon
     demo_p = torch.as_tensor(demo_p, dtype=torch.float64)
     K, M = demo_p.shape[:2]
@@ -178,13 +180,15 @@ def imagined_objective(models, cfgs, goals, demo_p, ot_cfg, starts=256, seed=0):
     t0 = torch.randint(M - H - 1, (starts,), generator=gen)
     start = vae.encode(demo_p[torch.randint(K, (starts,), generator=gen), t0].float())
     start = {k: start[k] for k in wm.state_keys}
-    out = []
+    j, reward = [], []
     with torch.random.fork_rng(devices=[]):
         for goal in goals:
             torch.manual_seed(seed)  # the same imagination noise for every goal
-            feat = policy.rollout(wm, actor, start, goal.expand(starts, -1), H)[0]  # (N, H + 1, F)
-            out.append(ot_reward.ot_reward(vae.decode(feat[:, 1:]), demo_p, ot_cfg, t0 + 1)[0].mean().item())
-    return np.array(out)
+            feat = policy.rollout(wm, actor, start, goal.expand(starts, -1), H)[0][:, 1:]  # (N, H, F)
+            j.append(ot_reward.ot_reward(vae.decode(feat), demo_p, ot_cfg, t0 + 1)[0].mean().item())
+            state = wm.cfg.obs == "state"
+            reward.append(envs.observed_reward(cfgs["train"].env, task, wm.decode(feat).numpy()).mean() if state else np.nan)
+    return np.array(j), np.array(reward)
 
 
 def real_scores(models, cfgs, task, goals, episodes, first_seed=60_000):
@@ -208,11 +212,12 @@ def rank_goals(models, cfgs, task, demo_p, episodes, ot_cfg, draws=10):
     with torch.no_grad():
         goals = torch.cat([vae.goal(torch.as_tensor(demo_p[:, -1])), online.posterior_goals(vae, demo_p[0, -1], draws + 1, seed=0)[1:]])
     real = real_scores(models, cfgs, task, goals, episodes)  # (episodes, G)
-    j = imagined_objective(models, cfgs, goals, demo_p, ot_cfg)
+    j, reward = imagined_objective(models, cfgs, task, goals, demo_p, ot_cfg)
     half = spearman(real[0::2].mean(0), real[1::2].mean(0))
     reliability = 2 * half / (1 + half)  # Spearman-Brown: the reliability of the mean over all episodes
     return {"episodes": episodes, "real": real.mean(0).round(2).tolist(), "eq5": j.round(5).tolist(),
-            "spearman": round(spearman(j, real.mean(0)), 3), "reliability": round(reliability, 3),
+            "imagined_reward": reward.round(5).tolist(), "spearman": round(spearman(j, real.mean(0)), 3),
+            "spearman_reward": round(spearman(reward, real.mean(0)), 3), "reliability": round(reliability, 3),
             "cap": round(float(np.sqrt(max(reliability, 0))), 3)}
 
 
@@ -237,13 +242,17 @@ def ranking(run, step, cfgs, models, settings, episodes, out):
 
 
 def ranking_markdown(rows):
-    out = ["| run | update | cell | real score: mean (min..max) | Spearman(J, real) | cap |", "|---|---|---|---|---|---|"]
+    reward = lambda r: f"{r['spearman_reward']:.2f}" if "spearman_reward" in r else "-"
+    out = ["| run | update | cell | real score: mean (min..max) | Spearman(J, real) | Spearman(imagined task reward, real) | cap |",
+           "|---|---|---|---|---|---|---|"]
     for r in rows:
         out.append(f"| {r['run']} | {r['step']} | {r['setting']} {r['task']} | {np.mean(r['real']):.1f} ({min(r['real']):.1f}..{max(r['real']):.1f}) "
-                   f"| {r['spearman']:.2f} | {r['cap']:.2f} |")
+                   f"| {r['spearman']:.2f} | {reward(r)} | {r['cap']:.2f} |")
     for run in dict.fromkeys(r["run"] for r in rows):
         sel = [r for r in rows if r["run"] == run]
-        out.append(f"| {run} | | mean of {len(sel)} cells | | **{np.mean([r['spearman'] for r in sel]):.2f}** | {np.mean([r['cap'] for r in sel]):.2f} |")
+        mean_reward = np.mean([r["spearman_reward"] for r in sel]) if all("spearman_reward" in r for r in sel) else None
+        out.append(f"| {run} | | mean of {len(sel)} cells | | **{np.mean([r['spearman'] for r in sel]):.2f}** | "
+                   + ("-" if mean_reward is None else f"{mean_reward:.2f}") + f" | {np.mean([r['cap'] for r in sel]):.2f} |")
     return "\n".join(out)
 
 

@@ -121,3 +121,18 @@ def test_jump_rewards_height():
 def test_normalized_score_eq8():
     assert envs.normalized_score("walk", 45) == 0 and envs.normalized_score("walk", 960) == 100
     assert envs.normalized_score("run", 415) == pytest.approx(50)
+
+
+def test_observed_reward_reads_the_task_reward_from_observations():
+    """stand: exactly task_reward; walk, run, jump (approximations: rootx velocity, no airborne test): in [0, 1], and
+    a body moving forward at running speed earns more of run than one standing still."""
+    env = envs.make_env("walker", "run")
+    obs, _ = env.reset(seed=3)
+    assert np.isclose(envs.observed_reward("walker", "stand", obs), envs.task_reward(env.physics, "walker", "stand"))
+    batch = np.stack([obs, obs])
+    batch[1, -env.physics.model.nv + 1] = 10.0  # rootx velocity
+    for task in ("walk", "run", "jump"):
+        r = envs.observed_reward("walker", task, batch)
+        assert r.shape == (2,) and np.all((0 <= r) & (r <= 1))
+    run = envs.observed_reward("walker", "run", batch)
+    assert run[1] > run[0]

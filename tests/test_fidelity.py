@@ -116,6 +116,6 @@ def test_ranking_rows_on_a_smoke_agent(smoke_run, tmp_path):
     assert all(len(r["real"]) == len(r["eq5"]) == 2 + 10 and -1 <= r["spearman"] <= 1 and 0 <= r["cap"] <= 1 for r in rows)
     fidelity.ranking(smoke_run, ckpt["step"], cfgs, models, ["SE-SV"], 2, out)
     assert len(fidelity.rundir.read_jsonl(out)) == 4
-    assert "mean of 4 cells" in fidelity.ranking_markdown(rows)
+    assert all(-1 <= r["spearman_reward"] <= 1 for r in rows) and "mean of 4 cells" in fidelity.ranking_markdown(rows)
     with pytest.raises(ValueError, match="--settings SE-SV,CE-SV: the ranking is measured on same-body cells"):
         fidelity.ranking(smoke_run, ckpt["step"], cfgs, models, ["SE-SV", "CE-SV"], 2, out)
