@@ -49,11 +49,14 @@ HORIZONS = (16, 50, 100)  # the reported k: GenRL's imagination horizon (16), an
 
 
 def held_out_episodes(cfgs):
-    """{source: episodes}: the body's own side-view demos per task, and D_body's held-out episodes ('body')."""
+    """{source: episodes}: the body's own side-view demos per task, D_body's held-out episodes ('body') and as many of
+    its training episodes ('body_train': the model keeps those it trained on, and not the held-out ones, where it is
+    data-bound)."""
     tc, wc = cfgs["train"], cfgs["wm"]
     keys = (wc.obs, "action", "is_first", "p")
     out = {task: collect.load_folder(os.path.join(tc.data, "demos", f"{tc.env}_{task}_side"), keys) for task in envs.TASKS}
-    out["body"] = collect.load_folder(os.path.join(tc.data, tc.env), keys)[:: tc.holdout_every]
+    body = collect.load_folder(os.path.join(tc.data, tc.env), keys)
+    out["body"], out["body_train"] = body[:: tc.holdout_every], body[1 :: tc.holdout_every]
     return out
 
 
@@ -108,7 +111,7 @@ def at(curve, k, digits):
 def markdown(rows):
     """Per row and source: cos imagined (filtered) at each horizon, error against hold at each horizon, recon / KL."""
     h = " / ".join(map(str, HORIZONS))
-    out = [f"| run | update | source | cos imagined at {h} | cos filtered at {h} | error at {h} | hold at {h} | held-out recon / KL |",
+    out = [f"| run | update | source | cos imagined at {h} | cos filtered at {h} | error at {h} | hold at {h} | recon / KL |",
            "|---|---|---|---|---|---|---|---|"]
     for r in rows:
         for name, m in r["sources"].items():
@@ -122,13 +125,13 @@ def curve_markdown(rows):
     """One line per row (a run at an update), for a learning curve: the cosine imagined at each horizon averaged over the
     four tasks' demos, at 50 steps per source, and the held-out recon of D_body."""
     h = " / ".join(map(str, HORIZONS))
-    sources = list(rows[0]["sources"])
-    out = [f"| run | update | demos' cos at {h} | cos at 50: " + " / ".join(sources) + " | D_body recon / KL |", "|---|---|---|---|---|"]
+    sources = list(dict.fromkeys(name for r in rows for name in r["sources"]))
+    out = [f"| run | update | demos' cos at {h} | cos at 50: " + " / ".join(sources) + " | held-out D_body recon / KL |", "|---|---|---|---|---|"]
     for r in rows:
         m = r["sources"]
         demos = [np.mean([m[t]["cos"][k - 1] for t in envs.TASKS]) if all(k <= len(m[t]["cos"]) for t in envs.TASKS) else None for k in HORIZONS]
         out.append(f"| {r['run']} | {r['step']} | " + " / ".join("-" if v is None else f"{v:.2f}" for v in demos) + " | "
-                   + " / ".join(at(m[name]["cos"], 50, 2) for name in sources) + f" | {m['body']['recon']:.2f} / {m['body']['kl']:.2f} |")
+                   + " / ".join(at(m[name]["cos"], 50, 2) if name in m else "-" for name in sources) + f" | {m['body']['recon']:.2f} / {m['body']['kl']:.2f} |")
     return "\n".join(out)
 
 
@@ -141,10 +144,12 @@ def plot(rows, path):
     import matplotlib.pyplot as plt
 
     last = {r["run"]: r for r in rows}
-    sources = list(next(iter(last.values()))["sources"])
+    sources = list(dict.fromkeys(name for r in last.values() for name in r["sources"]))
     fig, axes = plt.subplots(1, len(sources), figsize=(3.2 * len(sources), 3), sharey=True)
     for ax, name in zip(np.atleast_1d(axes), sources):
         for i, (run, r) in enumerate(last.items()):
+            if name not in r["sources"]:
+                continue
             m, color = r["sources"][name], f"C{i}"
             steps = np.arange(1, len(m["cos"]) + 1)
             ax.plot(steps, m["cos"], color=color, label=f"{run} ({r['step']})")

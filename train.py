@@ -234,8 +234,9 @@ def pretrain(cfgs, run_dir, resume):
     optims, clips = make_optimizers(models, cfgs)
     ckpt_path, log_path, fidelity_path = (os.path.join(run_dir, n) for n in ("checkpoint.pt", "metrics.jsonl", "fidelity.jsonl"))
     first, rng = resume_from(ckpt_path, resume, cfgs, models, optims, encoder, device, rng)
-    for path in (log_path, fidelity_path):  # rows a killed run logged after its checkpoint
-        rundir.trim_jsonl(path, first)
+    rundir.trim_jsonl(log_path, first)  # rows a killed run logged after its checkpoint
+    if os.path.exists(fidelity_path):
+        rundir.trim_jsonl(fidelity_path, first)
     keep = lambda done, **actors: save(ckpt_path, cfgs, done, rng, encoder, shapes, models, optims, **actors)
     update = lambda name, loss, term: checkpoint.checked_step(optims[name], loss, term, step, lambda: stop_hint(ckpt_path, saved, cfgs, name), clips[name])
     saved, t0, metrics, total = first, time.time(), {}, tc.wm_steps + tc.steps

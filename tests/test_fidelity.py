@@ -76,7 +76,7 @@ def test_world_model_stage_trains_eq2_and_eq3_alone_logs_fidelity_and_resumes_bi
     cfgs = lambda: train.resolve_configs(train_args(data=smoke_data, wm_steps=4, steps=4, fidelity_every=2, checkpoint_every=2), "smoke")
     whole = train.train(cfgs(), str(tmp_path / "whole"), resume=False)
     rows = rundir.read_jsonl(str(tmp_path / "whole" / "fidelity.jsonl"))
-    assert [r["step"] for r in rows] == [2, 4, 6, 8] and set(rows[0]["sources"]) == {"stand", "walk", "run", "jump", "body"}
+    assert [r["step"] for r in rows] == [2, 4, 6, 8] and set(rows[0]["sources"]) == {"stand", "walk", "run", "jump", "body", "body_train"}
     metrics = rundir.read_jsonl(str(tmp_path / "whole" / "metrics.jsonl"))
     assert "dist_loss" not in metrics[0] and "actor_loss" not in metrics[1] and "actor_loss" in metrics[-1]  # the stage, then phase 1
     # killed in the stage after its checkpoint at update 2 (at update 4's fidelity row), then resumed
