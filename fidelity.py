@@ -2,9 +2,10 @@
 
 Eq. 4 trains the policy and Eq. 5 infers the goal in the world model's imagination, so both are only as good as its
 open-loop rollouts. On held-out episodes of the agent's own body (its side-view demos of the four tasks, expert episodes
-never in D_body, and every `holdout_every`-th D_body episode, held out of training), each episode is filtered with the
-posterior's means; from the filtered state at steps t0 = 10, 110, 210, 310 (at least 10 filtered steps of context) the
-prior imagines 100 steps open loop with the recorded actions (the latent's mode, no sampling). At k steps ahead:
+never in D_body, and every `holdout_every`-th D_body episode, held out of training; beside them as many D_body
+training episodes), each episode is filtered with the posterior's mode; from the filtered state at steps t0 = 10, 110,
+210, 310 (at least 10 filtered steps of context) the prior imagines 100 steps open loop with the recorded actions (the
+latent's mode, no sampling). At k steps ahead:
 
     error     the decoder's squared error per element of the imagined state (symlog space, world_model.open_loop_error)
     hold      the same for holding the last filtered observation o_t0: what imagining nothing earns
@@ -20,8 +21,10 @@ imagined objective rank goals as reality does? Candidates: the zero-shot goals q
 environment from the same `--episodes` start states (env seeds 60000 + i); its real score is Eq. 8's, averaged. Eq. 5's
 J of a goal is the mean OT reward of the frozen policy's imagined rollouts, as GIIL-FT computes it (imitate.py): 256
 starts from goal-encoder states of demo frames t0, `horizon` steps, matched against the demo frames after t0; every goal
-from the same starts and imagination noise. Reported: Spearman (J, real score) over the 20 goals, and the cap the real
-score's own noise puts on it: sqrt of its split-half reliability (even against odd episodes, Spearman-Brown).
+from the same starts and imagination noise. Reported: Spearman (J, real score) over the 20 goals; the same for the
+task reward of the same rollouts' decoded states (a probe of the imagination alone, without the OT reward); and the
+cap the real score's own noise puts on both: sqrt of its split-half reliability (even against odd episodes,
+Spearman-Brown).
 
     python fidelity.py agents/walker [--out docs/results/fidelity_walker.jsonl]
     python fidelity.py --table docs/results/fidelity_walker.jsonl [--png docs/fidelity_walker.png]
