@@ -38,6 +38,7 @@ from presets import DATA
 # Ranges of the numeric flags that are not counts or sizes (those are >= 1): (low, high), None = no bound. Learning
 # rates lie in (0, 1), the fields of POSITIVE above 0, any other float is >= 0.
 RANGES = {"seed": (0, None), "seed_steps": (0, None), "policy_start": (0, None), "wm_steps": (0, None), "fidelity_every": (0, None),
+          "overshoot": (0, None),
           "holdout_every": (2, None),  # 1 would hold out every episode
           "discrete": (0, None), "unimix": (0, 1),  # discrete 0: a Gaussian z (world_model.make_latent)
           "finetune_policy": (0, 1), "video": (0, 1), "encoder_goals": (0, 1), "body_ratio": (0, 1),

@@ -92,6 +92,8 @@ def train(cfgs, run_dir, resume):
     """Phase 1 into run_dir, which no other process writes meanwhile (rundir.lock); flags are checked first."""
     for name, config in cfgs.items():
         rundir.check_flags(config, COMPONENTS[name][1])
+    if cfgs["wm"].overshoot >= cfgs["wm"].seq_len:
+        raise ValueError(f"--wm-overshoot {cfgs['wm'].overshoot} rolls past a segment: pass one below --wm-seq-len {cfgs['wm'].seq_len}")
     ckpt_path = os.path.join(run_dir, "checkpoint.pt")
     if resume and not os.path.exists(ckpt_path):
         raise ValueError(f"--resume: no checkpoint at {ckpt_path}; drop --resume to start a new run there")

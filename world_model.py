@@ -47,6 +47,10 @@ class WorldModelConfig:
     free_nats: float = 1.0  # Dreamer V3: each KL term is clipped below 1 nat per step
     kl_dyn: float = 0.5  # Dreamer V3 KL balancing: weight of KL(sg(post) || prior), trains the prior
     kl_rep: float = 0.1  # Dreamer V3 KL balancing: weight of KL(post || sg(prior)), trains the posterior
+    # PlaNet's latent overshooting (Hafner et al. 2019; ours here, `overshooting_kl`): also KL(sg(post) || the prior rolled
+    # this many steps open loop with the recorded actions), weighed as kl_dyn; 0: Eq. 2 alone
+    overshoot: int = 0
+    overshoot_starts: int = 4  # open-loop rollouts per segment, from random steps of it (ours)
     batch: int = 16  # sequences per batch (ours, a CPU budget; Dreamer V1: 50)
     seq_len: int = 50  # steps per sequence, Dreamer V1
     lr: float = 6e-4  # Adam, Dreamer V1
@@ -354,7 +358,30 @@ class WorldModel(nn.Module):
         loss = recon.mean() + cfg.kl_dyn * dyn + cfg.kl_rep * rep
         metrics = {"wm_loss": loss.item(), "recon": recon.mean().item(), "kl": kl_dyn.mean().item(),
                    "post_ent": latent.entropy(post).mean().item(), "prior_ent": latent.entropy(prior).mean().item()}
+        if cfg.overshoot:
+            overshoot = self.overshooting_kl(post, batch["action"], batch["is_first"])  # (N, overshoot)
+            loss = loss + cfg.kl_dyn * overshoot.clamp(min=cfg.free_nats).mean()
+            metrics.update(wm_loss=loss.item(), kl_overshoot=overshoot.mean().item())
         return loss, metrics, post
+
+    def overshooting_kl(self, post, action, is_first):
+        """PlaNet's latent overshooting: from the posterior s_t0 at `overshoot_starts` random steps of each segment, the
+        prior rolls cfg.overshoot steps open loop with the recorded actions (reparameterised samples, as imagination
+        does), each step's KL[sg(q(z_{t0+k})) || p(z_{t0+k} | s_t0, a_{t0+1:t0+k})] -> (N, overshoot), N the rollouts
+        that cross no episode start. Eq. 2's KL trains the one-step prior only; imagination runs it for 15-500 steps."""
+        cfg, (B, T) = self.cfg, is_first.shape
+        H = cfg.overshoot  # below T: train.py refuses more
+        t0 = torch.randint(T - H, (B, cfg.overshoot_starts), device=action.device)  # (B, S)
+        row = torch.arange(B, device=action.device)[:, None].expand_as(t0)
+        episode = is_first.cumsum(1)  # (B, T): a segment's episode count up to t
+        whole = (episode[row, t0 + H] == episode[row, t0]).flatten()  # (B * S,): no episode starts inside the rollout
+        state = {k: post[k][row, t0].flatten(0, 1)[whole] for k in self.state_keys}  # (N, .)
+        kls = []
+        for k in range(1, H + 1):
+            state = self.img_step(state, action[row, t0 + k].flatten(0, 1)[whole])
+            target = {key: post[key][row, t0 + k].flatten(0, 1)[whole].detach() for key in self.latent.stat_keys}
+            kls.append(self.latent.kl(target, state))
+        return torch.stack(kls, 1)
 
     @torch.no_grad()
     def open_loop(self, batch, context):
