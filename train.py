@@ -7,6 +7,8 @@ One update, in the order of Sec. 4:
   Eq. 4  goal-conditioned actor-critic in imagination, reward -d(s, g)   (after `policy_start` updates,
          once the world model and distance give a meaningful reward)
   ours   hindsight behaviour cloning beside Eq. 4's actor loss, and a cloning polish after the last update (cloning.py)
+The first `wm_steps` updates (ours; 0 in every preset) are a world-model stage, Eq. 2 and 3 alone, with the fidelity
+benchmark (fidelity.py) every `fidelity_every` updates; `steps` updates of all of the above follow.
 Ends with the learning curve (learning_curve.png) and the goal-reaching benchmark (evaluate.py): the multi-task
 policy in the real environment with its own body's side-view demos as goals, against random actions.
 
@@ -252,47 +254,40 @@ def pretrain(cfgs, run_dir, resume):
         # Eq. 3: the goal VAE, q(s | p_t) and p(p_t | s), against sg(posterior)
         loss, m3 = vae.loss(batch["p"], post)
         update("goal_vae", loss, "Eq. 3 goal-VAE loss")
-        if step < tc.wm_steps:  # the world-model stage: Eq. 2 and 3 alone
-            metrics.update(m2 | m3)
-            if logged:
-                metrics.update(step=step + 1, updates_per_s=tc.log_every / (time.time() - t0))
-                metrics.update(evaluate.open_loop_metrics(wm, vae, data.sample(wc.batch, rng, device), wc.seq_len // 2))
-                rundir.append_jsonl(log_path, metrics)
-                bar.write(log_line(metrics))
-                t0 = time.time()
-            if tc.fidelity_every and (step + 1) % tc.fidelity_every == 0:
-                rundir.append_jsonl(fidelity_path, fidelity.benchmark(models, fidelity_sources, step + 1, run_dir))
-            if (step + 1) % tc.checkpoint_every == 0:
-                saved = keep(step + 1)
-            continue
-        post_feat = wm.feat(post).detach()  # (B, T, F)
-        # Eq. 7: the temporal distance on pairs of posterior states, and of states and encoder goals (ours)
-        with torch.no_grad():  # the goal encoder's g of every frame (B, T, F), what GIIL-ZS feeds the policy, and of the last (B, F)
-            goal_feat, final_goal = vae.goal(batch["p"]), vae.goal(batch["p_last"])
-        pairs = distance.sample_pairs(batch["episode"], batch["is_first"], dc.pairs)
-        loss, m7 = distance.distance_loss(dist_net, post_feat, pairs, wc.seq_len, dc.contrastive_weight, goal_feat if dc.encoder_goals else None)
-        update("dist_net", loss, "Eq. 7 distance loss")
-        metrics.update(m2 | m3 | m7)
-        # Eq. 4 after policy_start updates, once d gives a meaningful reward: the actor-critic in imagination, reward -d(s, g)
-        if step >= tc.wm_steps + tc.policy_start:
-            start, index = policy.sample_starts(post, ac.starts)
-            goals = policy.sample_goals(post_feat, goal_feat, index, batch["is_first"], ac.goal_mix, ac.goal_near)
-            a_loss, c_loss, m4 = policy.policy_losses(wm, dist_net, actor, critic, slow_critic, models["return_norm"], start, goals, ac)
-            # ours, beside Eq. 4: hindsight behaviour cloning of D_body's actions (cloning.py), in ac.bc_steps actor steps
-            clone = lambda: cloning.bc_loss(actor, post_feat, goal_feat, batch["action"], final_goal, ac.bc_final)
-            bc, m_bc = clone() if ac.bc else (0.0, {})
-            if logged and ac.bc:  # Eq. 4's share of the actor's step against the cloning's (evaluate.gradient_share)
-                m4.update(policy.gradient_norms(actor, eq4=a_loss, bc=ac.bc * bc))
-            update("actor", a_loss + ac.bc * bc, "Eq. 4 actor loss")
-            update("critic", c_loss, "Eq. 4 critic loss")
-            policy.ema_update(slow_critic, critic, ac.slow_critic_rate)
-            for _ in range(ac.bc_steps - 1 if ac.bc else 0):  # more cloning steps on this batch, each with fresh goals
-                bc, m_bc = clone()
-                update("actor", ac.bc * bc, "behaviour-cloning loss")
-            metrics.update(m4 | m_bc)
+        metrics.update(m2 | m3)
+        stage = step < tc.wm_steps  # the world-model stage: Eq. 2 and 3 alone; then phase 1, Eq. 7 and Eq. 4 too
+        if not stage:
+            post_feat = wm.feat(post).detach()  # (B, T, F)
+            # Eq. 7: the temporal distance on pairs of posterior states, and of states and encoder goals (ours)
+            with torch.no_grad():  # the goal encoder's g of every frame (B, T, F), what GIIL-ZS feeds the policy, and of the last (B, F)
+                goal_feat, final_goal = vae.goal(batch["p"]), vae.goal(batch["p_last"])
+            pairs = distance.sample_pairs(batch["episode"], batch["is_first"], dc.pairs)
+            loss, m7 = distance.distance_loss(dist_net, post_feat, pairs, wc.seq_len, dc.contrastive_weight, goal_feat if dc.encoder_goals else None)
+            update("dist_net", loss, "Eq. 7 distance loss")
+            metrics.update(m7)
+            # Eq. 4 after policy_start updates, once d gives a meaningful reward: the actor-critic in imagination, reward -d(s, g)
+            if step >= tc.wm_steps + tc.policy_start:
+                start, index = policy.sample_starts(post, ac.starts)
+                goals = policy.sample_goals(post_feat, goal_feat, index, batch["is_first"], ac.goal_mix, ac.goal_near)
+                a_loss, c_loss, m4 = policy.policy_losses(wm, dist_net, actor, critic, slow_critic, models["return_norm"], start, goals, ac)
+                # ours, beside Eq. 4: hindsight behaviour cloning of D_body's actions (cloning.py), in ac.bc_steps actor steps
+                clone = lambda: cloning.bc_loss(actor, post_feat, goal_feat, batch["action"], final_goal, ac.bc_final)
+                bc, m_bc = clone() if ac.bc else (0.0, {})
+                if logged and ac.bc:  # Eq. 4's share of the actor's step against the cloning's (evaluate.gradient_share)
+                    m4.update(policy.gradient_norms(actor, eq4=a_loss, bc=ac.bc * bc))
+                update("actor", a_loss + ac.bc * bc, "Eq. 4 actor loss")
+                update("critic", c_loss, "Eq. 4 critic loss")
+                policy.ema_update(slow_critic, critic, ac.slow_critic_rate)
+                for _ in range(ac.bc_steps - 1 if ac.bc else 0):  # more cloning steps on this batch, each with fresh goals
+                    bc, m_bc = clone()
+                    update("actor", ac.bc * bc, "behaviour-cloning loss")
+                metrics.update(m4 | m_bc)
         if logged:
             metrics.update(step=step + 1, updates_per_s=tc.log_every / (time.time() - t0))
-            metrics.update(diagnostics(models, cfgs, data, rng, device, post, post_feat, goal_feat, batch["is_first"], step + 1 - tc.wm_steps))
+            if stage:
+                metrics.update(evaluate.open_loop_metrics(wm, vae, data.sample(wc.batch, rng, device), wc.seq_len // 2))
+            else:
+                metrics.update(diagnostics(models, cfgs, data, rng, device, post, post_feat, goal_feat, batch["is_first"], step + 1 - tc.wm_steps))
             rundir.append_jsonl(log_path, metrics)
             bar.write(log_line(metrics))
             t0 = time.time()
