@@ -152,6 +152,41 @@ def bench_components():
           f"this core's fp32 peak {peak / 1e9:.0f} GFLOP/s: at most {total_s * peak / total_flops:.2f}x on one thread with the same FLOPs")
 
 
+def bench_world_models(variants=(("Gaussian z (cpu preset)", {}), ("categorical z, 32 x 32 (--wm-stoch 32 --wm-discrete 32)", dict(stoch=32, discrete=32)),
+                                   ("latent overshooting 25 (--wm-overshoot 25)", dict(overshoot=25)))):
+    """A world-model stage update (Eq. 2 and Eq. 3, train.py --wm-steps) of each world-model variant of docs/imagination.md
+    at the cpu preset's sizes, one thread, alternating in this one run; each against the first."""
+    import torch
+
+    import goal_vae
+    import rundir
+    import world_model as W
+
+    torch.set_num_threads(1)
+    rundir.fast_matmul()
+    updates = {}
+    for name, overrides in variants:
+        wm = W.WorldModel(W.WorldModelConfig(**overrides), 24, 6)
+        vae = goal_vae.GoalVAE(goal_vae.GoalVAEConfig(), 512, wm.cfg.deter, wm.latent)
+        batch = W.random_batch("state", 24, 6, wm.cfg.batch, wm.cfg.seq_len, p_dim=512)
+        opt = torch.optim.Adam([*wm.parameters(), *vae.parameters()], lr=3e-4)
+
+        def update(wm=wm, vae=vae, batch=batch, opt=opt):
+            loss, _, post = wm.loss(batch)
+            opt.zero_grad(set_to_none=True)
+            (loss + vae.loss(batch["p"], post)[0]).backward()
+            opt.step()
+
+        updates[name] = update
+    times = {}
+    for _ in range(2):
+        for name, update in updates.items():
+            times.setdefault(name, []).append(timed(update, repeat=5, warmup=2))
+    first = np.mean(times[variants[0][0]])
+    for name in updates:
+        print(f"world model    {name}: {1000 * np.mean(times[name]):.0f} ms per stage update, {np.mean(times[name]) / first:.2f}x")
+
+
 def bench_gpu():
     """Each phase-1 component's update on the GPU, at the cpu preset's sizes and at the paper preset's (pixels)."""
     import torch
@@ -370,7 +405,7 @@ def bench_ot():
 
 
 AGAINST = ("phase1", "finetune", "collect", "baselines")  # the sections that take --against
-SECTIONS = {"render": bench_render, "features": bench_features, "collect": bench_collect, "components": bench_components, "phase1": bench_phase1, "finetune": bench_finetune,
+SECTIONS = {"render": bench_render, "features": bench_features, "collect": bench_collect, "components": bench_components, "world_models": bench_world_models, "phase1": bench_phase1, "finetune": bench_finetune,
             "baselines": bench_baselines, "ot": bench_ot, "gpu": bench_gpu}
 
 if __name__ == "__main__":
