@@ -146,6 +146,12 @@ def stderr(values):
     return float(np.std(values, ddof=1) / np.sqrt(len(values))) if len(values) > 1 else 0.0
 
 
+def spearman(a, b):
+    """Spearman's rank correlation of two 1-d sequences (no ties expected: real-valued scores)."""
+    ra, rb = np.argsort(np.argsort(a)), np.argsort(np.argsort(b))
+    return float(np.corrcoef(ra, rb)[0, 1])
+
+
 @torch.no_grad()
 def demo_goals(models, body, task, data, episodes, device="cpu"):
     """The benchmark's goals: g = q(s | p_T) of each own side-view demo of `task` under data/demos, each repeated for

@@ -168,12 +168,6 @@ def plot(rows, path):
     return path
 
 
-def spearman(a, b):
-    """Rank correlation of two 1-d sequences (no ties expected: real-valued scores)."""
-    ra, rb = np.argsort(np.argsort(a)), np.argsort(np.argsort(b))
-    return float(np.corrcoef(ra, rb)[0, 1])
-
-
 @torch.no_grad()
 def imagined_objective(models, cfgs, task, goals, demo_p, ot_cfg, starts=256, seed=0):
     """Eq. 5's J of each goal: the mean OT reward r^ot of the frozen policy's imagined rollouts (the quantity L_GI's
@@ -221,11 +215,11 @@ def rank_goals(models, cfgs, task, demo_p, episodes, ot_cfg, draws=10):
         goals = torch.cat([vae.goal(torch.as_tensor(demo_p[:, -1])), online.posterior_goals(vae, demo_p[0, -1], draws + 1, seed=0)[1:]])
     real = real_scores(models, cfgs, task, goals, episodes)  # (episodes, G)
     j, reward = imagined_objective(models, cfgs, task, goals, demo_p, ot_cfg)
-    half = spearman(real[0::2].mean(0), real[1::2].mean(0))
+    half = evaluate.spearman(real[0::2].mean(0), real[1::2].mean(0))
     reliability = 2 * half / (1 + half)  # Spearman-Brown: the reliability of the mean over all episodes
     return {"episodes": episodes, "real": real.mean(0).round(2).tolist(), "eq5": j.round(5).tolist(),
-            "imagined_reward": reward.round(5).tolist(), "spearman": round(spearman(j, real.mean(0)), 3),
-            "spearman_reward": round(spearman(reward, real.mean(0)), 3), "reliability": round(reliability, 3),
+            "imagined_reward": reward.round(5).tolist(), "spearman": round(evaluate.spearman(j, real.mean(0)), 3),
+            "spearman_reward": round(evaluate.spearman(reward, real.mean(0)), 3), "reliability": round(reliability, 3),
             "cap": round(float(np.sqrt(max(reliability, 0))), 3)}
 
 

@@ -50,11 +50,6 @@ OBJECTIVES = ("eq5", "demo_h15", "own_h15", "own0_h100", "own0_h500", "own0_h500
 ERROR_STEPS = (15, 100, 500)
 
 
-def spearman(a, b):
-    ra, rb = np.argsort(np.argsort(a)), np.argsort(np.argsort(b))
-    return float(np.corrcoef(ra, rb)[0, 1])
-
-
 @torch.no_grad()
 def imagined_j(models, start, goal, horizon, demo_p, ot_cfg, offsets=None, mean_action=False, prior_mean=False, seed=0):
     """Mean OT reward per step of rollouts of `horizon` steps from start (dict of (N, .)) given goal (F,), decoded."""
@@ -183,7 +178,7 @@ def main():
         scores, true, error = probe_cell(models, cfgs, encoder, task, demo_p, [60_000 + i for i in range(args.seeds)], ot_cfg, envs.EPISODE_STEPS)
         row = {"agent": agent, "run": args.run, "task": task, "setting": where, "seeds": args.seeds, "true": true.round(2).tolist(),
                **{k: v.tolist() for k, v in scores.items()},
-               "replay_cos": dict(zip(map(str, ERROR_STEPS), error.round(3).tolist())), "spearman": {k: round(spearman(v, true), 3) for k, v in scores.items()}}
+               "replay_cos": dict(zip(map(str, ERROR_STEPS), error.round(3).tolist())), "spearman": {k: round(evaluate.spearman(v, true), 3) for k, v in scores.items()}}
         rundir.append_jsonl(args.out, row)
         print(f"{agent} {where} {task}: true {true.mean():.1f} (best {true.max():.1f}) | " + " ".join(f"{k} {v:.2f}" for k, v in row["spearman"].items()) + f" | replay cos {row['replay_cos']}", flush=True)
 

@@ -18,14 +18,10 @@ import sys
 import numpy as np
 
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+import evaluate  # noqa: E402
 import rundir  # noqa: E402
 
 BEST_OF_10 = 1.539  # E[max of 10 standard normals]
-
-
-def spearman(a, b):
-    ra, rb = np.argsort(np.argsort(a)), np.argsort(np.argsort(b))
-    return float(np.corrcoef(ra, rb)[0, 1])
 
 
 def split(episode_scores):
@@ -43,7 +39,7 @@ def cell_rows(rows):
         zs = {r["seed"]: r for r in rows if r["method"] == "GIIL-ZS" and (r["agent"], r["setting"], r["task"], r["demo"], r["view"]) == key}
         g, e, rel = split([zs[k]["episode_scores"] for k in sorted(zs)])
         online = [r for r in rows if r["method"] == "GIIL-online" and (r["agent"], r["setting"], r["task"], r["demo"], r["view"]) == key]
-        first = [spearman([s for _, _, s in r["ot_log"][:len(zs)]], [zs[i]["score"] for i, _, _ in r["ot_log"][:len(zs)]]) for r in online]
+        first = [evaluate.spearman([s for _, _, s in r["ot_log"][:len(zs)]], [zs[i]["score"] for i, _, _ in r["ot_log"][:len(zs)]]) for r in online]
         out[key[:3]] = (g, e, rel, np.mean([z["score"] for z in zs.values()]), first)
     return out
 

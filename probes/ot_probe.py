@@ -23,6 +23,7 @@ sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 import checkpoint  # noqa: E402
 import collect  # noqa: E402
 import envs  # noqa: E402
+import evaluate  # noqa: E402
 import ot_reward  # noqa: E402
 import policy  # noqa: E402
 import tables  # noqa: E402
@@ -45,11 +46,6 @@ def imagined_ot(models, cfgs, goals, demo_p, starts, seed=0):
             reward, _ = ot_reward.ot_reward(vae.decode(feat[:, 1:]), demo_p, ot_reward.OTConfig(), t0 + 1)
             out.append(reward.mean().item())
     return np.array(out)
-
-
-def spearman(a, b):
-    ra, rb = np.argsort(np.argsort(a)), np.argsort(np.argsort(b))
-    return float(np.corrcoef(ra, rb)[0, 1])
 
 
 def main():
@@ -82,7 +78,7 @@ def main():
         means = {t: J[t].mean() for t in envs.TASKS}
         hit = max(means, key=means.get) == task
         real = [zs.get((demo, view, k)) for k in range(len(J[task]))]
-        rho = spearman(J[task], real) if None not in real else float("nan")
+        rho = evaluate.spearman(J[task], real) if None not in real else float("nan")
         hits.append(hit)
         rhos.append(rho)
         print(f"{where} {task} | " + " ".join(f"{t} {1e3 * means[t]:.2f}" for t in envs.TASKS) + f" | {'yes' if hit else 'no'} | {rho:.2f}")

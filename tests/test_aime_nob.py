@@ -14,10 +14,11 @@ import torch.nn.functional as F
 
 import aime_nob
 import checkpoint
+import evaluate
 import genrl
 import ot_reward
 import presets
-from conftest import kill_at_evaluation, probe_script
+from conftest import kill_at_evaluation
 
 SMOKE = aime_nob.AIMENoBConfig(**presets.PRESETS["aime_nob"]["smoke"])
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
@@ -78,7 +79,7 @@ def test_cell_end_to_end_and_resumable(smoke_run, tmp_path):
     out = subprocess.run(probe + ["stickman_stand", "side", "--body"], cwd=ROOT, capture_output=True, text=True)
     assert out.returncode == 0, out.stderr[-2000:]
     log = torch.load(glob.glob(os.path.join(run, "baselines", "AIME-NoB_stickman_stand_side_s0_*.pt"))[0], weights_only=True)["log"]
-    rho = probe_script("goal_variance").spearman([e["ot_sum"] for e in log], [e["task_return"] for e in log])
+    rho = evaluate.spearman([e["ot_sum"] for e in log], [e["task_return"] for e in log])
     assert f"seed 0 | 20 | {len(log)} | {rho:+.2f} |" in out.stdout and "\nall | " in out.stdout
     out = subprocess.run(probe + ["walker_walk", "side"], cwd=ROOT, capture_output=True, text=True)
     assert out.returncode == 1 and "no AIME-NoB training state of walker_walk (side view)" in out.stderr
