@@ -24,7 +24,7 @@ import envs  # noqa: E402
 import genrl  # noqa: E402
 import ot_reward  # noqa: E402
 import rundir  # noqa: E402
-from goal_variance import spearman  # noqa: E402
+from evaluate import spearman  # noqa: E402
 
 
 def main():

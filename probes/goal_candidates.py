@@ -33,7 +33,8 @@ import collect  # noqa: E402
 import envs  # noqa: E402
 import evaluate  # noqa: E402
 import rundir  # noqa: E402
-from goal_variance import spearman, split  # noqa: E402
+from evaluate import spearman  # noqa: E402
+from goal_variance import split  # noqa: E402
 
 SEEDS_A, SEEDS_B = 70_000, 80_000  # start states of the sets' runs and of the re-runs (neither GIIL-FT's nor online.py's)
 
