@@ -5,11 +5,13 @@ each other:
   TrainConfig, COMPONENTS  the configs of a run, one dataclass per component, and each one's flag prefix
   build_models, load_run   a run's models, fresh or from runs/<name>/checkpoint.pt (rundir.run_checkpoint checks it)
   default_run_dir, resolve_run   where train.py writes a run, and which one phase 2 uses when none is named
+  prepare_data             the run's D_body (collected first where incomplete) as training segments and held-out episodes
   body_segments, demo_folder     the run's D_body as segments, and a demo folder (collected first where missing)
   checked_step             one optimiser step, refused when the loss diverged or its gradient is not finite
 """
 import dataclasses
 import fcntl
+import json
 import math
 import os
 
@@ -23,6 +25,7 @@ import policy
 import rundir
 import world_model
 from presets import PRESETS
+from video_encoder import load_encoder
 
 
 @dataclasses.dataclass
@@ -128,6 +131,41 @@ def body_segments(cfgs):
     wc, tc = cfgs["wm"], cfgs["train"]
     keys = (wc.obs, "action", "is_first", "p")
     return collect.Segments(collect.load_folder(os.path.join(tc.data, tc.env), keys), keys, wc.seq_len)
+
+
+def prepare_data(cfgs):
+    """D_body of the run (collected first where incomplete) and the body's own demos (the benchmark's goals):
+    -> encoder, training Segments, held-out episodes, (obs_shape, action_dim, p_dim)."""
+    tc, wc = cfgs["train"], cfgs["wm"]
+    folder, want = os.path.join(tc.data, tc.env), collect.preset_config(tc.preset)
+    complete = os.path.join(folder, collect.COMPLETE)
+    has = json.load(open(complete)) if os.path.exists(complete) else {}  # missing, or a collection killed half-way
+    if has:  # a field added to CollectConfig since that collection reads as its default
+        has = {**dataclasses.asdict(collect.CollectConfig()), **has}
+    counts = ("explore_episodes", "task_episodes")
+    same_kind = all(has.get(k) == v for k, v in dataclasses.asdict(want).items() if k not in counts)
+    # a smaller D_body of the same recipe (the preset's older, smaller default) grows; another kind passed by --data
+    # (e.g. shorter episodes) is used as it is
+    fewer = [k for k in counts if has.get(k, 0) < getattr(want, k)] if same_kind or not has else []
+    if has and not same_kind:
+        other = [f"{k} {has.get(k)} (preset {v})" for k, v in dataclasses.asdict(want).items() if k not in counts and has.get(k) != v]
+        print(f"D_body at {folder} was collected with {', '.join(other)}: used as it is; `python collect.py --env {tc.env} "
+              f"--data <another folder>` collects the preset's")
+    if fewer:
+        print(f"D_body at {folder} is not complete ({', '.join(f'{k} {has.get(k, 0)} < {getattr(want, k)}' for k in fewer)}): "
+              f"collecting what is missing (python collect.py --env {tc.env} --preset {tc.preset})")
+        collect.collect_body(tc.env, want, tc.data, os.cpu_count(), tc.encoder)
+    if not all(os.path.isdir(os.path.join(tc.data, "demos", f"{tc.env}_{task}_side")) for task in envs.TASKS):
+        print(f"{tc.env}'s own demos (the goals of the goal-reaching benchmark, evaluate.py) missing: collecting them")
+        collect.collect_demos(want, tc.data, os.cpu_count(), tc.encoder, demos=[(tc.env, task) for task in envs.TASKS])
+    encoder = load_encoder(tc.encoder)
+    episodes = collect.load_folder(folder, (wc.obs, "action", "is_first", "p"), encoder=encoder.name)
+    held_out = episodes[:: tc.holdout_every]
+    train_eps = [e for k, e in enumerate(episodes) if k % tc.holdout_every]
+    data = collect.Segments(train_eps, (wc.obs, "action", "is_first", "p"), wc.seq_len)
+    obs_shape = episodes[0][wc.obs].shape[1] if wc.obs == "state" else (64, 64, 3)
+    print(f"D_body {folder}: {len(train_eps)} training + {len(held_out)} held-out episodes, {sum(data.lengths)} steps, features {encoder.name}")
+    return encoder, data, held_out, (obs_shape, episodes[0]["action"].shape[1], episodes[0]["p"].shape[1])
 
 
 def demo_folder(cfgs, demo, view):

@@ -28,16 +28,15 @@ from tqdm import tqdm
 
 import checkpoint
 import cloning
-import collect
 import distance
 import envs
 import evaluate
 import fidelity
 import policy
 import rundir
-from checkpoint import COMPONENTS, TrainConfig, default_run_dir, load_run
+from checkpoint import COMPONENTS, TrainConfig, default_run_dir, load_run, prepare_data
 from presets import PRESETS
-from video_encoder import check_same_encoder, load_encoder
+from video_encoder import check_same_encoder
 
 
 # fields that may differ when a run is resumed: they do not change what the models are
@@ -101,41 +100,6 @@ def train(cfgs, run_dir, resume):
         raise ValueError(f"--resume: no checkpoint at {ckpt_path}; drop --resume to start a new run there")
     with rundir.lock(run_dir):
         return pretrain(cfgs, run_dir, resume)
-
-
-def prepare_data(cfgs):
-    """D_body of the run (collected first where incomplete) and the body's own demos (the benchmark's goals):
-    -> encoder, training Segments, held-out episodes, (obs_shape, action_dim, p_dim)."""
-    tc, wc = cfgs["train"], cfgs["wm"]
-    folder, want = os.path.join(tc.data, tc.env), collect.preset_config(tc.preset)
-    complete = os.path.join(folder, collect.COMPLETE)
-    has = json.load(open(complete)) if os.path.exists(complete) else {}  # missing, or a collection killed half-way
-    if has:  # a field added to CollectConfig since that collection reads as its default
-        has = {**dataclasses.asdict(collect.CollectConfig()), **has}
-    counts = ("explore_episodes", "task_episodes")
-    same_kind = all(has.get(k) == v for k, v in dataclasses.asdict(want).items() if k not in counts)
-    # a smaller D_body of the same recipe (the preset's older, smaller default) grows; another kind passed by --data
-    # (e.g. shorter episodes) is used as it is
-    fewer = [k for k in counts if has.get(k, 0) < getattr(want, k)] if same_kind or not has else []
-    if has and not same_kind:
-        other = [f"{k} {has.get(k)} (preset {v})" for k, v in dataclasses.asdict(want).items() if k not in counts and has.get(k) != v]
-        print(f"D_body at {folder} was collected with {', '.join(other)}: used as it is; `python collect.py --env {tc.env} "
-              f"--data <another folder>` collects the preset's")
-    if fewer:
-        print(f"D_body at {folder} is not complete ({', '.join(f'{k} {has.get(k, 0)} < {getattr(want, k)}' for k in fewer)}): "
-              f"collecting what is missing (python collect.py --env {tc.env} --preset {tc.preset})")
-        collect.collect_body(tc.env, want, tc.data, os.cpu_count(), tc.encoder)
-    if not all(os.path.isdir(os.path.join(tc.data, "demos", f"{tc.env}_{task}_side")) for task in envs.TASKS):
-        print(f"{tc.env}'s own demos (the goals of the goal-reaching benchmark, evaluate.py) missing: collecting them")
-        collect.collect_demos(want, tc.data, os.cpu_count(), tc.encoder, demos=[(tc.env, task) for task in envs.TASKS])
-    encoder = load_encoder(tc.encoder)
-    episodes = collect.load_folder(folder, (wc.obs, "action", "is_first", "p"), encoder=encoder.name)
-    held_out = episodes[:: tc.holdout_every]
-    train_eps = [e for k, e in enumerate(episodes) if k % tc.holdout_every]
-    data = collect.Segments(train_eps, (wc.obs, "action", "is_first", "p"), wc.seq_len)
-    obs_shape = episodes[0][wc.obs].shape[1] if wc.obs == "state" else (64, 64, 3)
-    print(f"D_body {folder}: {len(train_eps)} training + {len(held_out)} held-out episodes, {sum(data.lengths)} steps, features {encoder.name}")
-    return encoder, data, held_out, (obs_shape, episodes[0]["action"].shape[1], episodes[0]["p"].shape[1])
 
 
 def make_optimizers(models, cfgs):

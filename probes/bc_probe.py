@@ -24,7 +24,6 @@ import collect  # noqa: E402
 import envs  # noqa: E402
 import evaluate  # noqa: E402
 import policy  # noqa: E402
-import train  # noqa: E402
 
 
 def what_the_data_allow(cfgs):
@@ -57,7 +56,7 @@ if __name__ == "__main__":
     cfgs["train"] = dataclasses.replace(cfgs["train"], data=args.data or cfgs["train"].data,
                                         seed=cfgs["train"].seed if args.seed is None else args.seed)
     what_the_data_allow(cfgs)
-    _, data, _, _ = train.prepare_data(cfgs)
+    _, data, _, _ = checkpoint.prepare_data(cfgs)
     ac = dataclasses.replace(cfgs["ac"], units=args.units or cfgs["ac"].units, actor_layers=args.layers or cfgs["ac"].actor_layers,
                              bc_polish=args.steps, bc_polish_batches=args.batches, bc_final=args.final_share)
     if not args.keep_actor:  # a fresh actor, seeded from the cloning's seed

@@ -28,7 +28,6 @@ import envs  # noqa: E402
 import evaluate  # noqa: E402
 import policy  # noqa: E402
 import rundir  # noqa: E402
-import train  # noqa: E402
 
 
 class Ensemble(torch.nn.Module):
@@ -56,7 +55,7 @@ if __name__ == "__main__":
     rundir.fast_matmul()  # as train.py and its benchmark
     cfgs, models, _ = checkpoint.load_run(args.run)
     cfgs["train"] = dataclasses.replace(cfgs["train"], data=args.data or cfgs["train"].data)
-    _, data, _, _ = train.prepare_data(cfgs)
+    _, data, _, _ = checkpoint.prepare_data(cfgs)
     trained = copy.deepcopy(models["actor"])
     actors = [trained] if args.keep_actor else []
     for k in range(len(actors), args.clones):

@@ -96,7 +96,7 @@ def test_a_smaller_older_d_body_grows_to_the_preset_before_training(smoke_data, 
     before = {n: os.path.getmtime(os.path.join(folder, n)) for n in os.listdir(folder) if n.endswith(".npz")}
     monkeypatch.setitem(presets.PRESETS["collect"], "smoke", {**presets.PRESETS["collect"]["smoke"], "task_episodes": 2})
     cfgs = train.resolve_configs(train_args(data=root), "smoke")
-    _, data, held_out, _ = train.prepare_data(cfgs)
+    _, data, held_out, _ = checkpoint.prepare_data(cfgs)
     names = [n for n in os.listdir(folder) if n.endswith(".npz")]
     assert len(names) == len(before) + len(envs.BODY_TASKS) and len(data.lengths) + len(held_out) == len(names)
     assert all(os.path.getmtime(os.path.join(folder, n)) == t for n, t in before.items())
