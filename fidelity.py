@@ -90,8 +90,9 @@ def measure(wm, vae, episodes, starts=STARTS, ahead=AHEAD, seed=0):
         state = wm.img_step(state, action[row[:, 0], index[:, k]], sample=False)
         feats.append(wm.feat(state))
     imagined = torch.stack(feats, 1)  # (E * S, ahead, F)
-    target = wm._target(obs)[row, index]  # (E * S, ahead, ...) in the decoder's space
-    last = wm._target(obs)[row[:, 0], index[:, 0] - 1][:, None]  # (E * S, 1, ...): o_t0, held
+    space = wm._target(obs)  # (E, L, ...): observations in the decoder's space
+    target = space[row, index]  # (E * S, ahead, ...)
+    last = space[row[:, 0], index[:, 0] - 1][:, None]  # (E * S, 1, ...): o_t0, held
     per_step = lambda err: err.pow(2).flatten(2).mean(-1).mean(0)  # (ahead,)
     cos = lambda f: (vae.decode(f) * p[row, index]).sum(-1).mean(0)  # (ahead,)
     return {"error": per_step(wm._decode_raw(imagined) - target).tolist(), "hold": per_step(last - target).tolist(),

@@ -376,11 +376,14 @@ class WorldModel(nn.Module):
         episode = is_first.cumsum(1)  # (B, T): a segment's episode count up to t
         whole = (episode[row, t0 + H] == episode[row, t0]).flatten()  # (B * S,): no episode starts inside the rollout
         state = {k: post[k][row, t0].flatten(0, 1)[whole] for k in self.state_keys}  # (N, .)
+        ahead = (t0[..., None] + torch.arange(1, H + 1, device=t0.device)).flatten(0, 1)[whole]  # (N, H): t0 + k
+        rows = row.flatten()[whole][:, None]  # (N, 1)
+        actions = action[rows, ahead].unbind(1)  # H x (N, A), gathered once
+        targets = {key: post[key][rows, ahead].detach() for key in self.latent.stat_keys}  # (N, H, .)
         kls = []
-        for k in range(1, H + 1):
-            state = self.img_step(state, action[row, t0 + k].flatten(0, 1)[whole])
-            target = {key: post[key][row, t0 + k].flatten(0, 1)[whole].detach() for key in self.latent.stat_keys}
-            kls.append(self.latent.kl(target, state))
+        for k in range(H):
+            state = self.img_step(state, actions[k])
+            kls.append(self.latent.kl({key: v[:, k] for key, v in targets.items()}, state))
         return torch.stack(kls, 1)
 
     @torch.no_grad()
