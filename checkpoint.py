@@ -1,4 +1,4 @@
-"""Eq. 1's two levels share one phase-1 run: its configs and models, its data, and the checked optimiser step.
+"""Eq. 1's two levels share one phase-1 run: its configs and models, and its data.
 
 Below train.py (phase 1), imitate.py (phase 2) and the baselines (genrl.py, aime_nob.py), which import it and never
 each other:
@@ -7,15 +7,12 @@ each other:
   default_run_dir, resolve_run   where train.py writes a run, and which one phase 2 uses when none is named
   prepare_data             the run's D_body (collected first where incomplete) as training segments and held-out episodes
   body_segments, demo_folder     the run's D_body as segments, and a demo folder (collected first where missing)
-  checked_step             one optimiser step, refused when the loss diverged or its gradient is not finite
 """
 import dataclasses
 import fcntl
 import json
-import math
 import os
 
-import torch
 
 import collect
 import distance
@@ -62,8 +59,6 @@ COMPONENTS = {
 # the commit that had it): a stored config that holds one at that value loads as before, one trained with it on is refused
 REMOVED = {"train": dict(act_temperature=0.0, cover_edges=0),
            "ac": dict(reward="distance", mixture=1, actor_input="feat", bc_awr=0.0, uncertainty=0.0, bc_polish_ema=0.0, bc_polish_fresh=0)}
-DIVERGED = 1e10  # |loss| above this is divergence (ours: the smoke preset's losses are below 100; a learning rate of 1e3 on
-# the goal VAE, distance or critic gave losses of 1e20 and more within 4 updates)
 
 
 def build_models(cfgs, obs_shape, action_dim, p_dim, device):
@@ -183,18 +178,3 @@ def demo_folder(cfgs, demo, view):
     finally:
         os.close(lock)
     return os.path.join(tc.data, "demos", f"{demo}_{view}")
-
-
-def checked_step(opt, loss, what, update, stop, clip=math.inf):
-    """opt.step() on `loss`, its gradient's global norm clipped at `clip`; unless the loss diverged (DIVERGED) or is
-    not finite, or its gradient is not: then a one-line ValueError '<what> is <loss> at update <update>: stopped;
-    <stop()>' (or '... has a non-finite gradient ...'), the weights untouched. stop: what was kept and what to try."""
-    opt.zero_grad(set_to_none=True)
-    bad = "" if abs(loss.item()) < DIVERGED else f"is {loss.item():.3g}"  # False for nan and inf too
-    if not bad:
-        loss.backward()
-        norm = torch.nn.utils.clip_grad_norm_([p for group in opt.param_groups for p in group["params"]], clip)
-        bad = "" if torch.isfinite(norm) else f"has a non-finite gradient (norm {norm.item()})"
-    if bad:
-        raise ValueError(f"{what} {bad} at update {update}: stopped; {stop()}")
-    opt.step()

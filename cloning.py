@@ -6,13 +6,13 @@ docs/ablations.md, Phase 1), so the actor's loss also clones D_body's own action
            episode's last frame
   polish   cloning steps on the frozen final world model after training (--ac-bc-polish)
 train.py adds ac.bc * bc_loss to Eq. 4's actor loss (policy.policy_losses) and takes ac.bc_steps - 1 more cloning
-steps per update; imitate.py does the same while the policy is finetuned jointly (Sec. 4).
+steps per update.
 """
 import numpy as np
 import torch
 from tqdm import tqdm
 
-import checkpoint
+import policy
 
 
 def bc_loss(actor, post_feat, goal_feat, action, final_goal=None, final_share=0.0):
@@ -60,5 +60,5 @@ def polish(models, cfgs, data, device):
         torch.manual_seed(tc.seed + 2)
         for k in tqdm(range(ac.bc_polish), desc="polish the actor (behaviour cloning on the final world model)"):
             loss, m = bc_loss(actor, *cache[k % len(cache)], ac.bc_final)
-            checkpoint.checked_step(opt, loss, "the polish's behaviour-cloning loss", k, stop, ac.grad_clip)
+            policy.checked_step(opt, loss, "the polish's behaviour-cloning loss", k, stop, ac.grad_clip)
     print(f"polished the actor: {ac.bc_polish} cloning steps on the final world model, bc_loss {m['bc_loss']:.3f}")

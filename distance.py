@@ -20,8 +20,7 @@ i.e. a weight of about 0.11.
 
 Which goals d is trained on (ours; the paper trains d on pairs of posterior states only). The policy is given
 goals from the goal encoder, g = q(s | p_j) (GIIL-ZS feeds it q(s | p_T) of a demo), and a d trained on posterior
-pairs alone cannot rank those: on a walker run it gave about the same d to encoder goals 1, 5, 15 and 30 steps ahead
-(docs/ablations.md, Phase 1), so -d was flat and Eq. 4 taught the policy nothing.
+pairs alone cannot rank those (docs/ablations.md, Phase 1), so -d was flat and Eq. 4 taught the policy nothing.
 With `encoder_goals` (default) every pair is scored twice, with the later state as the world model's posterior
 feat_j and as the goal encoder's g_j of the same frame, against the same Eq. 6 target. The posterior's h_t also
 carries the episode's history, which lets d answer "same trajectory?" instead of "how far?"; g_j is read from an
@@ -29,8 +28,7 @@ carries the episode's history, which lets d answer "same trajectory?" instead of
 negatives (not compared with the paper's equal weight here).
 
 What d reads (ours, `input`). Even with encoder goals, d read from the full state [h, z] learnt "same trajectory or
-not" and almost nothing of "how far": on a walker run, d of encoder goals 1 to 30 steps ahead stayed about the same,
-well below another episode's frames. In imagination, h continues the start state's history, so
+not" and almost nothing of "how far" (docs/ablations.md, Phase 1). In imagination, h continues the start state's history, so
 every near goal looked reached from the first step and -d did not change with what the policy did. LEXA reads an
 embedding of the observation; `input = "obs"` does the same with the world model's own decoder: d reads the decoded
 observation (symlog of the state vector) of s and of g, which holds the body's pose and velocities and no history.

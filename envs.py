@@ -92,6 +92,22 @@ _STICKMAN_ARM = """
       </body>"""
 
 
+def setting(agent_body, demo_body, view):
+    """The setting of a demo for an agent: SE or CE (same or cross embodiment), SV or CV (same or cross view)."""
+    return ("SE" if demo_body == agent_body else "CE") + "-" + ("SV" if view == "side" else "CV")
+
+
+def demo_of(agent, task, where):
+    """(demo name, view) of a setting: SE/CE picks the demonstrator's body, SV/CV its camera."""
+    other = [b for b in BODIES if b != agent][0]
+    return f"{agent if where.startswith('SE') else other}_{task}", "side" if where.endswith("SV") else "diagonal"
+
+
+def cells(agent):
+    """Every (task, setting) of an agent's table, in a fixed order (what --shard splits)."""
+    return [(task, where) for task in TASKS for where in SETTINGS]
+
+
 def _stickman_xml(walker_xml):
     """The walker XML with its torso subtree replaced by the stickman's (GenRL's stickman, Mazzaglia et al. 2024)."""
     head, rest = walker_xml.split('<body name="torso"', 1)

@@ -44,7 +44,6 @@ import online
 import ot_reward
 import policy
 import rundir
-import tables
 
 STARTS = (10, 110, 210, 310)  # t0: where imagination leaves the filter (ours: 4 per 500-step episode, >= 10 steps of context)
 AHEAD = 100  # steps imagined from each start
@@ -233,10 +232,10 @@ def ranking(run, step, cfgs, models, settings, episodes, out):
         raise ValueError(f"--episodes {episodes}: must be >= 2 (the cap splits them in halves)")
     agent, data = cfgs["train"].env, cfgs["train"].data
     done = {(r["run"], r["step"], r["task"], r["setting"]) for r in rundir.read_jsonl(out)}
-    for task, where in tables.cells(agent):
+    for task, where in envs.cells(agent):
         if where not in settings or (run, step, task, where) in done:
             continue
-        demo, view = tables.demo_of(agent, task, where)
+        demo, view = envs.demo_of(agent, task, where)
         demo_p = np.stack([d["p"] for d in collect.load_folder(os.path.join(data, "demos", f"{demo}_{view}"), ("p",))])
         row = {"run": run, "step": step, "task": task, "setting": where, **rank_goals(models, cfgs, task, demo_p, episodes, ot_reward.OTConfig())}
         rundir.append_jsonl(out, row)

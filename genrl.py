@@ -54,7 +54,6 @@ import envs
 import evaluate
 import policy
 import rundir
-import tables
 from presets import PRESETS
 from video_encoder import check_same_encoder
 
@@ -104,7 +103,7 @@ def aligned_reward(agent, target, window):
         raise ValueError(f"--align-window {window} is longer than the run's imagination horizon {H}: pass a window <= {H}")
     assert target.shape == (L, D) and window <= L, (agent.shape, target.shape, window)
     with torch.no_grad():  # sim(s_{t+j}, s*_j) of every window t and step j, read off one (N, H, k) matrix of all pairs
-        # (a matmul: 1 ms where gathering the (N, H - k + 1, k, D) windows took 12, ~10% of an update; bench.py --only baselines)
+        # (one matmul, not a gather of the (N, H - k + 1, k, D) windows: bench.py --only baselines)
         first = target[:window]
         pairs = (agent @ first.T) / torch.maximum(agent.norm(dim=-1)[..., None], first.norm(dim=-1)).clamp(min=1e-8) ** 2  # (N, H, k)
         t, j = torch.arange(H - window + 1, device=agent.device)[:, None], torch.arange(window, device=agent.device)
@@ -162,7 +161,7 @@ def train_policy(models, cfgs, gc, target, segments, seed, device, on_budget=Non
         a_loss, metrics = policy.actor_loss(returns, log_prob, return_norm, ac.entropy)
         c_loss, _ = policy.critic_loss(critic, feat, None, returns)
         for opt, loss, what in zip(optims, (a_loss, c_loss), ("actor loss", "critic loss")):
-            checkpoint.checked_step(opt, loss, f"{METHOD} seed {seed}: the {what}", step, stop, ac.grad_clip)
+            policy.checked_step(opt, loss, f"{METHOD} seed {seed}: the {what}", step, stop, ac.grad_clip)
         policy.ema_update(slow_critic, critic, ac.slow_critic_rate)
         bar.set_postfix(sim=f"{reward.mean().item():.3f}", ret=f"{metrics['return']:.2f}")
         if on_budget and step + 1 in marks:
@@ -206,7 +205,7 @@ def load_cell(run_dir, demo, view, data=None):
     envs._check_name("task", task, envs.TASKS)
     return {"run_dir": run_dir, "cfgs": cfgs, "models": models, "ckpt": ckpt, "device": device, "demo": demo, "view": view,
             "demos": demos, "demo_returns": [round(d["return"], 3) for d in demos], "task": task,
-            "setting": tables.setting(tc.env, demo_body, view)}
+            "setting": envs.setting(tc.env, demo_body, view)}
 
 
 def evaluate_actor(cell, world_model, actor, episodes, steps, seed):
@@ -301,7 +300,7 @@ def run_seeds(cell, method, cfg, train, **extra):
 
 def cell_rows(cell, method, config):
     """This cell's rows of `method` made with the same demos (their returns) and config, the latest per seed."""
-    return [r for r in tables.load_results(cell["run_dir"]) if r["method"] == method and r["demo"] == cell["demo"]
+    return [r for r in rundir.load_results(cell["run_dir"]) if r["method"] == method and r["demo"] == cell["demo"]
             and r["view"] == cell["view"] and r.get("demo_returns") == cell["demo_returns"] and r.get("config") == config]
 
 
@@ -363,10 +362,10 @@ def run_cells(parser, run_cell, method, cls, presets):
     cfg = config_from_args(cls, presets, args)  # a bad value: ValueError, one line (rundir.run_main)
     if args.demo:
         return run_cell(args.run, args.demo, args.view or "side", cfg, args.data)
-    settings, shard = tables.parse_settings(args.settings), tables.parse_shard(args.shard)
+    settings, shard = rundir.parse_settings(args.settings), rundir.parse_shard(args.shard)
     agent = checkpoint.load_run(args.run)[0]["train"].env
-    for task, where in [c for c in tables.cells(agent) if c[1] in settings][shard[0]::shard[1]]:
-        demo, view = tables.demo_of(agent, task, where)
+    for task, where in [c for c in envs.cells(agent) if c[1] in settings][shard[0]::shard[1]]:
+        demo, view = envs.demo_of(agent, task, where)
         with rundir.claim(os.path.join(args.run, "baselines", f"{method}_{demo}_{view}.lock")) as other:
             if other:
                 print(f"{demo} ({view} view): process {other} is running {method} on this cell now: skipped here")

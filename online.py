@@ -8,7 +8,7 @@ never read (the agent does not have it): `episode_features` drops it.
 
 The search (ours; the paper is silent, precedents: successive halving, Jamieson & Talwalkar 2016; OpTI-BFM's choice
 among candidate latents, Rupf et al. 2025): the candidates are the zero-shot goals q(s | p_T) of the cell's demos
-(GIIL-ZS's goals), or (`candidates='posterior'`) demo 0's and 9 draws of q(s | p_T) around it. Round r runs every
+(GIIL-ZS's goals). Round r runs every
 surviving candidate for `schedule[r][1]` episodes from the same environment seeds (common random numbers: the
 candidates are compared on the same start states), then keeps the `schedule[r + 1][0]`
 best by their mean OT score over all their episodes so far. The cpu schedule, 10 x 1, 4 x 1, 2 x 3, is 20 episodes
@@ -29,16 +29,6 @@ class OnlineConfig:
     schedule: tuple = ((10, 1), (4, 1), (2, 3))  # (candidates kept, episodes each) per round (ours): 20 episodes
     seed_base: int = 50_000  # refinement env seeds: seed_base + 1000 seed + i, apart from the evaluation's 20000 + 100 seed + e
     seeds: int = 3  # GIIL-online seeds (as the paper's non-zero-shot methods), each paired with GIIL-ZS (demo 0)
-    # the candidates: 'demos', the cell's demos' zero-shot goals; 'posterior', demo 0's zero-shot goal and 9 draws of
-    # q(s | p_T) around it, whose outcomes differ more (ours: probes/goal_candidates.py, same-body cells)
-    candidates: str = "demos"
-
-    def __post_init__(self):
-        if self.candidates not in CANDIDATES:
-            raise ValueError(f"OnlineConfig.candidates={self.candidates!r}: choose from {', '.join(CANDIDATES)}")
-
-
-CANDIDATES = ("demos", "posterior")
 
 
 def budget(cfg, candidates):
@@ -48,7 +38,7 @@ def budget(cfg, candidates):
 
 @torch.no_grad()
 def posterior_goals(vae, p_last, n, seed):
-    """The 'posterior' candidates: q(s | p_T)'s mean (GIIL-ZS's goal) and n - 1 draws s^g ~ q(s | p_T) of the goal
+    """q(s | p_T)'s mean (GIIL-ZS's goal) and n - 1 draws s^g ~ q(s | p_T) of the goal
     encoder's distribution (a Gaussian's mean + std * eps), their noise from `seed`. p_last (D,) -> (n, F)."""
     p = torch.as_tensor(p_last)[None]
     return torch.cat([vae.goal(p), vae.sample_goals(p, n - 1, torch.Generator().manual_seed(seed))])
@@ -140,7 +130,7 @@ if __name__ == "__main__":
     import argparse
 
     parser = argparse.ArgumentParser(description="GIIL-online's curve: score of the chosen goal against environment steps, from a "
-                                     "run's results.jsonl (python imitate.py --demo D --online, or --table --methods online)", allow_abbrev=False)
+                                     "run's results.jsonl (python imitate.py --demo D --online, or tables.py --methods online)", allow_abbrev=False)
     parser.add_argument("run")
     parser.add_argument("--demo", help="only this demo's cells, e.g. stickman_run (default: every cell with GIIL-online rows)")
     parser.add_argument("--view", help="only this camera's cells")

@@ -86,7 +86,7 @@ def _check_inputs(agent_p, demo_p, demo_offsets):
     if demo_p.shape[-1] != agent_p.shape[-1]:
         raise ValueError(f"feature sizes differ: agent_p has D={agent_p.shape[-1]}, demo_p has D={demo_p.shape[-1]}")
     for name, p in (("agent_p", agent_p), ("demo_p", demo_p)):
-        # NaN and inf reach a float64 sum, which float32 values cannot overflow: one pass (isfinite(p).all() took 9 ms on 10 demos)
+        # NaN and inf reach a float64 sum, which float32 values cannot overflow: one pass, cheaper than isfinite(p).all()
         if not torch.isfinite(p.sum(dtype=torch.float64)):
             raise ValueError(f"{name} contains NaN or inf")
     if demo_offsets is None:

@@ -10,6 +10,7 @@ trim_jsonl    on resume, metrics.jsonl keeps only the rows up to the checkpoint'
               further updates, which the resumed run logs again)
 read_jsonl    the rows of a .jsonl log; a last line cut short by a kill is dropped, any other bad line is an error
 append_jsonl  one row, on a line of its own after such a cut line
+load_results, finished   phase 2's result rows (runs/<name>/results.jsonl) and which of them count for a cell
 fast_matmul   fp32 matmuls through oneDNN where that is faster and still fp32 (checked on this CPU)
 threads_flag  --threads of imitate.py, genrl.py and aime_nob.py: this process's torch threads, not the run's training ones
 export_agent  a trained run as a shipped agent, agents/<body>/checkpoint.pt: weights only (train.py --export)
@@ -41,7 +42,7 @@ RANGES = {"seed": (0, None), "seed_steps": (0, None), "policy_start": (0, None),
           "overshoot": (0, None),
           "holdout_every": (2, None),  # 1 would hold out every episode
           "discrete": (0, None), "unimix": (0, 1),  # discrete 0: a Gaussian z (world_model.make_latent)
-          "finetune_policy": (0, 1), "video": (0, 1), "encoder_goals": (0, 1), "body_ratio": (0, 1),
+          "video": (0, 1), "encoder_goals": (0, 1), "body_ratio": (0, 1),
           "goal_near": (0, 1), "bc_final": (0, 1), "bc_polish": (0, None),
           "gamma": (0, 1), "lambda_": (0, 1), "tau": (0, 1), "goal_mix": (0, 1), "slow_critic_rate": (0, 1), "return_norm_decay": (0, 1)}
 POSITIVE = ("grad_clip", "min_std", "max_std", "mean_scale", "kappa", "init_alpha", "reward_sum")
@@ -150,6 +151,51 @@ def append_jsonl(path, row):
             except json.JSONDecodeError:
                 f.truncate(len(text) - len(last))
         f.write((json.dumps(row) + "\n").encode())
+
+
+def load_results(run_dir):
+    """The latest row per (demo, view, method, seed, demos' returns, settings) of runs/<name>/results.jsonl: a rerun
+    replaces its own earlier result, never one made with other demos or settings."""
+    return latest(read_jsonl(os.path.join(run_dir, "results.jsonl")))
+
+
+def latest(rows_in):
+    """The last of the rows with the same (demo, view, method, seed, demos' returns, settings) (load_results)."""
+    rows = {}
+    for r in rows_in:
+        rows[(r["demo"], r["view"], r["method"], r["seed"], json.dumps(r.get("demo_returns")), json.dumps(r.get("config")))] = r
+    return list(rows.values())
+
+
+def finished(rows, demo, view, returns, configs):
+    """A cell's rows that count: made with the demos now on disk (their returns) and, for a method of `configs`, with
+    the settings configs[method] (imitate.result_config)."""
+    return [r for r in rows if r["demo"] == demo and r["view"] == view and r.get("demo_returns") == returns
+            and r["method"] in configs and r.get("config") == configs[r["method"]]]
+
+
+def cell_lock(run_dir, demo, view):
+    """The lock file of a cell while a process runs it (claim; tables.py's cells, imitate.py --demo)."""
+    return os.path.join(run_dir, "imitate", f"{demo}_{view}.lock")
+
+
+def parse_shard(text):
+    """--shard I/N -> (I, N); None: (0, 1), the whole."""
+    try:
+        shard = tuple(int(x) for x in (text or "0/1").split("/"))
+        assert len(shard) == 2 and 0 <= shard[0] < shard[1]
+    except (ValueError, AssertionError):
+        raise ValueError(f"--shard {text}: pass I/N with 0 <= I < N, e.g. 0/4") from None
+    return shard
+
+
+def parse_settings(text):
+    """--settings SE-SV,CE-CV -> the list; an unknown one names the valid ones."""
+    settings = text.split(",")
+    unknown = [w for w in settings if w not in envs.SETTINGS]
+    if unknown:
+        raise ValueError(f"unknown setting(s) {', '.join(unknown)}: choose from {', '.join(envs.SETTINGS)}")
+    return settings
 
 
 def fast_matmul():

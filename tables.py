@@ -1,7 +1,9 @@
-"""Tables 1-2 and 4-11 of the paper for one agent: every setting (SE/CE x SV/CV) x task, GIIL-ZS and GIIL-FT, and with
-`--methods` the baselines GenRL and AIME-NoB, ours beside the paper's. The rows of runs/<name>/results.jsonl, which of
-them count for a cell, and the markdown of runs/<name>/tables.md; `python imitate.py --table [--methods
-giil,genrl,aime-nob]` runs the cells missing (imitate.table) and writes it.
+"""Tables 1-2 and 4-11 of the paper for one agent: every setting (SE/CE x SV/CV) x task, GIIL-ZS and the goal searches
+(imitate.SEARCHES: GIIL-FT, GIIL-online), and with `--methods` the baselines GenRL and AIME-NoB, ours beside the
+paper's. The table harness: it runs the cells missing from runs/<name>/results.jsonl (sharded over processes, a lock
+per cell, resumed from the rows), and writes their markdown to runs/<name>/tables.md:
+
+    python tables.py --run runs/<name> [--methods finetune,online,genrl,aime-nob] [--settings SE-SV,CE-CV] [--shard I/N]
 
 From committed rows alone (no checkpoint, no demos), as docs/tables_<agent>.md: `python tables.py --table
 docs/results/{online,curves,table}_<agent>.jsonl --budgets genrl=1000,aime-nob=5000` (the presets' budgets; each page
@@ -13,21 +15,27 @@ they were run at (genrl.py / aime_nob.py --eval-at), from rows of any results.js
     python tables.py --curves runs/<name>/results.jsonl [docs/results/*.jsonl] --png docs/curves_<agent>.png
 """
 import argparse
-import dataclasses
+import contextlib
 import json
 import os
 
 import numpy as np
 
+import aime_nob
+import checkpoint
+import collect
 import envs
 import evaluate
+import genrl
+import imitate
+import online
 import rundir
 from envs import SETTINGS
+from presets import PRESETS
 
 
-METHODS = ("GIIL-ZS", "GIIL-ZS (demo 0)", "GIIL-FT")  # a cell's columns; GIIL-ZS (demo 0) is the goal GIIL-FT starts from
 BASELINES = {"genrl": "GenRL", "aime-nob": "AIME-NoB"}  # --methods name -> method of the rows (genrl.py, aime_nob.py)
-ONLINE = "GIIL-online"  # ours, after Sec. 6 (online.py): shown where its rows exist, beside the GIIL-ZS (demo 0) it starts from
+SHOWN = ("GIIL-ZS", "GIIL-ZS (demo 0)", "GIIL-FT")  # the columns of every table; the other methods where they have rows
 
 # The paper's normalised scores, per setting (SE-SV, SE-CV, CE-SV, CE-CV) the columns PAPER_METHODS: Tables 1-2 ("all")
 # and 4-11 (per task), mean only
@@ -46,74 +54,6 @@ PAPER = {
 }
 
 
-def setting(agent_body, demo_body, view):
-    """The setting of a demo for an agent: SE or CE (same or cross embodiment), SV or CV (same or cross view)."""
-    return ("SE" if demo_body == agent_body else "CE") + "-" + ("SV" if view == "side" else "CV")
-
-
-def demo_of(agent, task, where):
-    """(demo name, view) of a setting: SE/CE picks the demonstrator's body, SV/CV its camera."""
-    other = [b for b in envs.BODIES if b != agent][0]
-    return f"{agent if where.startswith('SE') else other}_{task}", "side" if where.endswith("SV") else "diagonal"
-
-
-def load_results(run_dir):
-    """The latest row per (demo, view, method, seed, demos' returns, settings) of runs/<name>/results.jsonl: a rerun
-    replaces its own earlier result, never one made with other demos or settings."""
-    return latest(rundir.read_jsonl(os.path.join(run_dir, "results.jsonl")))
-
-
-def latest(rows_in):
-    """The last of the rows with the same (demo, view, method, seed, demos' returns, settings) (load_results)."""
-    rows = {}
-    for r in rows_in:
-        rows[(r["demo"], r["view"], r["method"], r["seed"], json.dumps(r.get("demo_returns")), json.dumps(r.get("config")))] = r
-    return list(rows.values())
-
-
-def result_config(ic, method, oc=None):
-    """The ImitateConfig fields a result depends on: evaluation for the zero-shot columns, finetuning too for GIIL-FT,
-    the OnlineConfig oc's too for GIIL-online."""
-    fields, evaluation = dataclasses.asdict(ic), ("eval_episodes", "eval_steps")
-    if method == ONLINE:  # as a row stores it: JSON has no tuples (the schedule reads back as lists); `candidates` only
-        # where it is not 'demos', what every GIIL-online row had before the field existed
-        online = {k: v for k, v in dataclasses.asdict(oc).items() if k != "seeds" and not (k == "candidates" and v == "demos")}
-        return json.loads(json.dumps({**{k: fields[k] for k in evaluation}, **online}))
-    keep = evaluation if method.startswith("GIIL-ZS") else tuple(k for k in fields if k not in ("seeds", "video"))
-    return {k: fields[k] for k in keep}
-
-
-def finished(rows, demo, view, returns, configs):
-    """A cell's rows that count: made with the demos now on disk (their returns) and, for a method of `configs`, with
-    the settings configs[method] (result_config)."""
-    return [r for r in rows if r["demo"] == demo and r["view"] == view and r.get("demo_returns") == returns
-            and r["method"] in configs and r.get("config") == configs[r["method"]]]
-
-
-def cell_lock(run_dir, demo, view):
-    """The lock file of a cell while a process runs it (rundir.claim; imitate.table, imitate.py --demo)."""
-    return os.path.join(run_dir, "imitate", f"{demo}_{view}.lock")
-
-
-def parse_shard(text):
-    """--shard I/N -> (I, N); None: (0, 1), the whole."""
-    try:
-        shard = tuple(int(x) for x in (text or "0/1").split("/"))
-        assert len(shard) == 2 and 0 <= shard[0] < shard[1]
-    except (ValueError, AssertionError):
-        raise ValueError(f"--shard {text}: pass I/N with 0 <= I < N, e.g. 0/4") from None
-    return shard
-
-
-def parse_settings(text):
-    """--settings SE-SV,CE-CV -> the list; an unknown one names the valid ones."""
-    settings = text.split(",")
-    unknown = [w for w in settings if w not in SETTINGS]
-    if unknown:
-        raise ValueError(f"unknown setting(s) {', '.join(unknown)}: choose from {', '.join(SETTINGS)}")
-    return settings
-
-
 def parse_budgets(text):
     """--budgets genrl=2000,aime-nob=15000 -> {name: budget}."""
     try:
@@ -126,19 +66,14 @@ def parse_budgets(text):
     return budgets
 
 
-def cells(agent):
-    """Every (task, setting) of an agent's table, in a fixed order (what --shard splits)."""
-    return [(task, where) for task in envs.TASKS for where in SETTINGS]
-
-
 def markdown_tables(agent, rows):
     """Tables 1/2 (all tasks) and 4-11 (per task) for this agent: ours next to the paper's, mean +- s.e., and GIIL-FT
     minus GIIL-ZS (demo 0) paired by cell and seed (both are scored on the same evaluation seeds)."""
     def cell(scores):
         return f"{np.mean(scores):.1f} +- {evaluate.stderr(scores):.1f}" if scores else "-"
 
-    methods = METHODS + tuple(m for m in (ONLINE, *BASELINES.values()) if any(r["method"] == m for r in rows))
-    paired = ("GIIL-FT",) + ((ONLINE,) if ONLINE in methods else ())  # each minus GIIL-ZS (demo 0), seed by seed
+    methods = SHOWN + tuple(m for m in imitate.METHODS + tuple(BASELINES.values()) if m not in SHOWN and any(r["method"] == m for r in rows))
+    paired = [m for m in methods if m in imitate.SEARCHES]  # each minus GIIL-ZS (demo 0), seed by seed
     paper_methods = [m for m in methods if m in PAPER_METHODS]  # the paper's columns of the methods shown
     out = []
     for task in ("all",) + envs.TASKS:
@@ -195,7 +130,7 @@ def curve_points(rows, settings):
     None. A baseline's rows at a budget are those whose config has that budget (a run of it, or an --eval-at point)."""
     out = {}
     for r in rows:
-        if r["setting"] not in settings or r["method"] not in METHODS + (ONLINE, *BASELINES.values()):
+        if r["setting"] not in settings or r["method"] not in imitate.METHODS + tuple(BASELINES.values()):
             continue
         budget = r["config"][BUDGET[r["method"]][0]] if r["method"] in BUDGET else None
         out.setdefault(r["method"], {}).setdefault(budget, []).append(((r["demo"], r["view"]), r["seed"], r["score"], r["time"]))
@@ -260,39 +195,129 @@ def plot_curves(agent, rows, settings, path, seeds=3):
     plt.close(fig)
 
 
+def baseline_configs(preset, budgets=None):
+    """{method: (module, its config, the config its rows carry)} of each baseline, with its own preset of that name (cpu's
+    where it has none); budgets {name: budget} replaces a preset's (GenRL's updates, AIME-NoB's env steps: --budgets)."""
+    out, budgets = {}, budgets or {}
+    for name, method in BASELINES.items():
+        module, cls, key = {"genrl": (genrl, genrl.GenRLConfig, "genrl"), "aime-nob": (aime_nob, aime_nob.AIMENoBConfig, "aime_nob")}[name]
+        given = {cls.budget_field: budgets[name]} if name in budgets else {}
+        cfg = cls(**{**PRESETS[key].get(preset, {}), **given})  # a preset the baseline has not (paper): its defaults
+        out[method] = (module, cfg, genrl.result_config(cfg))
+    return out
+
+
+def run_table(run_dir, ic, oc=None, settings=SETTINGS, shard=(0, 1), methods=("finetune",), budgets=None, demos_per_cell=10):
+    """Every setting x task for this agent: GIIL-ZS and the goal searches whose flag is in `methods` (imitate.SEARCHES),
+    and the baselines named there (BASELINES' keys, each with its preset of ic.preset, or at `budgets`); runs only what
+    is missing from results.jsonl, then writes the tables of every finished cell. `settings` limits which settings run
+    now; shard (i, N) runs only the cells i, i + N, ... of those (tables' order: N processes share one table, rows
+    appended under a lock and told apart by method and seed). A row counts only if it was made with the demos now on
+    disk (their returns) and with the settings asked for (imitate.result_config): regenerating D_demo or changing a
+    setting runs the cells again instead of mixing old and new results."""
+    known = [s.flag for s in imitate.SEARCHES.values()] + list(BASELINES)
+    unknown = [m for m in methods if m not in known]
+    if unknown:
+        raise ValueError(f"--methods {','.join(unknown)}: choose from {', '.join(known)}")
+    oc = oc or online.OnlineConfig(**PRESETS["online"][ic.preset])
+    rundir.check_flags(ic)
+    baselines = baseline_configs(ic.preset, budgets)  # their finished cells are shown whichever methods run now
+    cfgs = checkpoint.load_run(run_dir)[0]
+    agent, shown = cfgs["train"].env, []
+    configs = {**{m: imitate.result_config(ic, m, oc) for m in imitate.METHODS}, **{m: b[2] for m, b in baselines.items()}}
+    searches = [m for m, s in imitate.SEARCHES.items() if s.flag in methods]
+    # the shards split the cells of `settings`, so that none is left idle; a cell left out runs nothing, its finished rows still count
+    runs_here = [cell for cell in envs.cells(agent) if cell[1] in settings][shard[0]::shard[1]]
+    for task, where in envs.cells(agent):
+        demo, view = envs.demo_of(agent, task, where)
+        run_now = (task, where) in runs_here
+        # one process at a time runs a cell (its lock file, rundir.claim): a second table process without --shard, or
+        # with shards that overlap, skips the cells another one is running; their rows count once written
+        with rundir.claim(rundir.cell_lock(run_dir, demo, view)) if run_now else contextlib.nullcontext() as other:
+            if other:
+                print(f"{demo} ({view} view): process {other} is running this cell now ({rundir.cell_lock(run_dir, demo, view)}): skipped here")
+            run_now = run_now and not other
+            folder = checkpoint.demo_folder(cfgs, demo, view) if run_now else os.path.join(cfgs["train"].data, "demos", f"{demo}_{view}")
+            if not os.path.isdir(folder):
+                continue
+            returns = [round(e["return"], 3) for e in collect.load_folder(folder, ())]
+            done = {(r["method"], r["seed"]) for r in rundir.finished(rundir.load_results(run_dir), demo, view, returns, configs)}
+            count = lambda m: sum(method == m for method, _ in done)
+            # only the seeds missing (a cell cut off goes on where it was); GIIL-online's candidates are GIIL-ZS's goals
+            missing = [m for m in searches if min(count(m), count("GIIL-ZS (demo 0)")) < imitate.SEARCHES[m].seeds(ic, oc)]
+            zero_shot = bool(searches) and count("GIIL-ZS") < demos_per_cell
+            if (zero_shot or missing) and run_now:
+                imitate.imitate(run_dir, demo, view, ic, missing, oc, zero_shot, done)
+            for name, method in BASELINES.items():
+                module, cfg, _ = baselines[method]
+                if count(method) < cfg.seeds and run_now and name in methods:
+                    module.run_cell(run_dir, demo, view, cfg)
+            shown.append((demo, view, returns))
+    rows = rundir.load_results(run_dir)  # read once all cells ran: the rows other shards appended meanwhile count too
+    text = markdown_tables(agent, [r for cell in shown for r in rundir.finished(rows, *cell, configs)])
+    path = os.path.join(run_dir, "tables.md")
+    rundir.atomic_write(path, lambda f: f.write(text.encode()))
+    print(text)
+    print(f"wrote {path}")
+
+
 def main():
-    parser = argparse.ArgumentParser(description="Tables 1-2 and 4-11, or score against compute, from result rows (docs/results.md).", allow_abbrev=False)
+    parser = argparse.ArgumentParser(description="Tables 1-2 and 4-11: run an agent's missing cells (--run, --env), or from result "
+                                     "rows (--table, --curves: score against compute; docs/results.md).", allow_abbrev=False)
     mode = parser.add_mutually_exclusive_group(required=True)
-    mode.add_argument("--table", nargs="+", metavar="ROWS", help="results.jsonl files of one agent: its tables (as imitate.py --table)")
+    mode.add_argument("--run", help="the phase-1 run (train.py) whose agent imitates: run its missing cells, write <run>/tables.md")
+    mode.add_argument("--env", choices=envs.BODIES, help="as --run, the run train.py writes for this body and --preset "
+                      "(runs/<env>_<obs>_<preset>_s0, or else the shipped agents/<env>)")
+    mode.add_argument("--table", nargs="+", metavar="ROWS", help="results.jsonl files of one agent: its tables")
     mode.add_argument("--curves", nargs="+", metavar="ROWS", help="results.jsonl files of one agent: score against compute")
-    parser.add_argument("--budgets", help="with --table: the baselines' columns at these budgets, e.g. genrl=2000,aime-nob=15000")
-    parser.add_argument("--settings", default="SE-SV,SE-CV", help="with --curves: the settings averaged (default the same-body ones)")
-    parser.add_argument("--seeds", type=int, default=3, help="with --curves: a baseline's cell counts with this many seeds at each budget")
+    parser.add_argument("--methods", help="with --run: comma-separated, of finetune (GIIL-FT; the default), online (GIIL-online), genrl, "
+                        "aime-nob (the baselines, genrl.py and aime_nob.py with their --preset); GIIL-ZS comes with any goal search")
+    parser.add_argument("--settings", help="with --run: the settings to run now (default all); with --curves: the settings averaged "
+                        "(default the same-body ones), comma-separated")
+    parser.add_argument("--shard", metavar="I/N", help="with --run: run only cells I, I + N, ... of those of --settings (N processes, one table)")
+    parser.add_argument("--budgets", help="with --run or --table: the baselines' columns at these budgets instead of their presets', "
+                        "e.g. genrl=2000,aime-nob=15000 (GenRL updates, AIME-NoB env steps)")
+    parser.add_argument("--min-seeds", type=int, default=3, help="with --curves: a baseline's cell counts with this many seeds at each budget")
     parser.add_argument("--png", help="with --curves: also draw the figure here")
+    rundir.threads_flag(parser)
+    imitate.config_flags(parser)
     args = parser.parse_args()
-    curves_only = [f for f in ("png", "settings", "seeds") if getattr(args, f) != parser.get_default(f)]
-    if args.table and curves_only:
-        parser.error(f"--{curves_only[0]} works with --curves only: drop it")
-    if args.curves and args.budgets:
-        parser.error("--budgets works with --table only: drop it")
+    ic, given = imitate.parse_config(args)
+    mode = "--run" if args.run or args.env else "--table" if args.table else "--curves"
+    allowed = {"--run": ("methods", "settings", "shard", "budgets", "threads"), "--table": ("budgets",), "--curves": ("settings", "min_seeds", "png")}
+    extra = [f for f in ("methods", "settings", "shard", "budgets", "min_seeds", "png", "threads")
+             if getattr(args, f) != parser.get_default(f) and f not in allowed[mode]] + ([] if mode == "--run" else list(given))
+    if extra:
+        parser.error(f"--{extra[0].replace('_', '-')} does nothing with {mode}: drop it")
+    try:
+        budgets = parse_budgets(args.budgets) if args.budgets else None
+        settings = rundir.parse_settings(args.settings or (",".join(SETTINGS) if mode == "--run" else "SE-SV,SE-CV"))
+        shard = rundir.parse_shard(args.shard)
+    except ValueError as error:
+        parser.error(str(error))
+    if mode == "--run":
+        rundir.use_threads(args.threads)
+        run = args.run or checkpoint.resolve_run(args.env, ic.preset)
+        rundir.run_checkpoint(run, env=args.env)  # before anything runs: the run's agent is what its folder's name says
+        run_table(run, ic, None, settings, shard, (args.methods or "finetune").split(","), budgets)
+        return
     paths = args.table or args.curves
     missing = [path for path in paths if not os.path.isfile(path)]
     if missing:
         raise ValueError(f"{missing[0]}: no such file; pass results.jsonl files (runs/<name>/results.jsonl, docs/results/*.jsonl)")
-    rows = latest(r for path in paths for r in rundir.read_jsonl(path))  # a row in two files counts once
+    rows = rundir.latest(r for path in paths for r in rundir.read_jsonl(path))  # a row in two files counts once
     agents = {r["agent"] for r in rows}
     if len(agents) != 1:
         raise ValueError(f"the rows are of agents {sorted(agents)}: pass one agent's files")
     agent = agents.pop()
     if args.table:
-        print(markdown_tables(agent, table_rows(rows, parse_budgets(args.budgets) if args.budgets else None)))
+        print(markdown_tables(agent, table_rows(rows, budgets)))
         return
-    settings = parse_settings(args.settings)
-    print(markdown_curves(agent, rows, settings, args.seeds))
+    print(markdown_curves(agent, rows, settings, args.min_seeds))
     if args.png:
-        plot_curves(agent, rows, settings, args.png, args.seeds)
+        plot_curves(agent, rows, settings, args.png, args.min_seeds)
         print(f"wrote {args.png}")
 
 
 if __name__ == "__main__":
-    rundir.run_main(main, "nothing is written but the figure")
+    rundir.run_main(main, "every evaluation finished is in the run's results.jsonl: the same command goes on from there")

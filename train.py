@@ -206,7 +206,7 @@ def pretrain(cfgs, run_dir, resume):
     if os.path.exists(fidelity_path):
         rundir.trim_jsonl(fidelity_path, first)
     keep = lambda done, **actors: save(ckpt_path, cfgs, done, rng, encoder, shapes, models, optims, **actors)
-    update = lambda name, loss, term: checkpoint.checked_step(optims[name], loss, term, step, lambda: stop_hint(ckpt_path, saved, cfgs, name), clips[name])
+    update = lambda name, loss, term: policy.checked_step(optims[name], loss, term, step, lambda: stop_hint(ckpt_path, saved, cfgs, name), clips[name])
     saved, t0, metrics, total = first, time.time(), {}, tc.wm_steps + tc.steps
     fidelity_sources = fidelity.held_out_episodes(cfgs) if tc.fidelity_every else None
     for step in (bar := tqdm(range(first, total), initial=first, total=total, desc=f"train {os.path.basename(run_dir)}")):

@@ -43,7 +43,6 @@ import online  # noqa: E402
 import ot_reward  # noqa: E402
 import policy  # noqa: E402
 import rundir  # noqa: E402
-import tables  # noqa: E402
 import video_encoder  # noqa: E402
 
 OBJECTIVES = ("eq5", "demo_h15", "own_h15", "own0_h100", "own0_h500", "own0_h500_mean", "own0_h500_det", "replay", "posterior", "real")
@@ -170,10 +169,10 @@ def main():
     args.out = args.out or f"docs/results/goal_probe_{agent}.jsonl"
     done = {(r["agent"], r["task"], r["setting"]) for r in rundir.read_jsonl(args.out)}
     os.makedirs(os.path.dirname(args.out) or ".", exist_ok=True)
-    for task, where in tables.cells(agent):
+    for task, where in envs.cells(agent):
         if where not in args.settings.split(",") or task not in args.tasks.split(",") or (agent, task, where) in done:
             continue
-        demo, view = tables.demo_of(agent, task, where)
+        demo, view = envs.demo_of(agent, task, where)
         demo_p = np.stack([d["p"] for d in collect.load_folder(os.path.join(data, "demos", f"{demo}_{view}"), ("p",))])
         scores, true, error = probe_cell(models, cfgs, encoder, task, demo_p, [60_000 + i for i in range(args.seeds)], ot_cfg, envs.EPISODE_STEPS)
         row = {"agent": agent, "run": args.run, "task": task, "setting": where, "seeds": args.seeds, "true": true.round(2).tolist(),

@@ -26,7 +26,7 @@ import envs  # noqa: E402
 import evaluate  # noqa: E402
 import ot_reward  # noqa: E402
 import policy  # noqa: E402
-import tables  # noqa: E402
+import rundir  # noqa: E402
 
 
 def imagined_ot(models, cfgs, goals, demo_p, starts, seed=0):
@@ -58,15 +58,15 @@ def main():
     cfgs, models, _ = checkpoint.load_run(args.run)
     agent, data = cfgs["train"].env, cfgs["train"].data
     zs = {}
-    for r in tables.load_results(args.run):
+    for r in rundir.load_results(args.run):
         if r["method"] == "GIIL-ZS":
             zs[(r["demo"], r["view"], r["seed"])] = r["score"]
     hits, rhos = [], []
     print("cell | J(g) of the goals of each task's demos, mean over 10 (x 1e3) | own task first | Spearman J vs real score (10 ZS goals)")
-    for task, where in tables.cells(agent):
+    for task, where in envs.cells(agent):
         if where not in args.settings.split(","):
             continue
-        demo, view = tables.demo_of(agent, task, where)
+        demo, view = envs.demo_of(agent, task, where)
         body = demo.rsplit("_", 1)[0]
         load = lambda t: collect.load_folder(os.path.join(data, "demos", f"{body}_{t}_{view}"), ("p",))
         demo_p = torch.as_tensor(np.stack([d["p"] for d in load(task)]))

@@ -1,4 +1,4 @@
-"""imitate.py: GIIL-ZS / GIIL-FT end to end (smoke), the stop-gradients of Eq. 5 vs Eq. 4, bad input, tables."""
+"""imitate.py: GIIL-ZS / GIIL-FT end to end (smoke), Eq. 5's gradient (g only, through V_ot), bad input."""
 import dataclasses
 import json
 import os
@@ -19,7 +19,7 @@ SMOKE = imitate.ImitateConfig(**presets.PRESETS["imitate"]["smoke"])
 
 
 def test_zero_shot_and_finetune_end_to_end(smoke_run):
-    rows = imitate.imitate(smoke_run, "stickman_run", "diagonal", True, SMOKE)
+    rows = imitate.imitate(smoke_run, "stickman_run", "diagonal", SMOKE, ["GIIL-FT"])
     zs = [r for r in rows if r["method"] == "GIIL-ZS"]
     ft = [r for r in rows if r["method"] == "GIIL-FT"]
     zs0 = [r for r in rows if r["method"] == "GIIL-ZS (demo 0)"]
@@ -31,31 +31,49 @@ def test_zero_shot_and_finetune_end_to_end(smoke_run):
     assert logged[-len(rows):] == rows
 
 
-def test_goal_gets_only_L_GI_and_policy_only_L_MG(smoke_run):
-    """Eq. 5 moves g and never psi; Eq. 4 (joint finetuning) moves psi and never g."""
+def posterior_starts(models, cfgs, n=2):
+    """Imagination starts: the world model's posterior states of n D_body segments, flattened."""
+    batch = checkpoint.body_segments(cfgs).sample(n, np.random.default_rng(0), "cpu")
+    with torch.no_grad():
+        post, _ = models["world_model"].observe(batch[cfgs["wm"].obs], batch["action"], batch["is_first"])
+    return {k: v.flatten(0, 1)[:6] for k, v in post.items()}
+
+
+def test_goal_gets_L_GI_and_psi_nothing(smoke_run):
+    """Eq. 5 moves g and never psi, the world model or the goal decoder."""
     cfgs, models, _ = checkpoint.load_run(smoke_run)
     feat_dim = models["world_model"].feat_dim
     critic_ot, slow_ot = imitate.policy.make_critics(cfgs["ac"], feat_dim, 0)
     goal = torch.nn.Parameter(torch.randn(feat_dim))
-    cfgs["ac"].bc = 1.0  # the cpu preset's behaviour-cloning term is part of L_MG too
-    pool, bc = imitate.body_pool(models, cfgs, checkpoint.body_segments(cfgs), np.random.default_rng(0), "cpu", n=2)
-    start = {k: v[:6] for k, v in pool.items()}
     demo_p = torch.nn.functional.normalize(torch.randn(2, 12, models["goal_vae"].feat_dim), dim=-1)
-    gi, ot_loss, _ = imitate.goal_inference_loss(models, critic_ot, slow_ot, goal, start, demo_p, cfgs, ot_reward.OTConfig(iters=5))
+    gi, ot_loss, _ = imitate.goal_inference_loss(models, critic_ot, slow_ot, goal, posterior_starts(models, cfgs), demo_p, cfgs,
+                                                 ot_reward.OTConfig(iters=5))
     gi.backward()
     assert goal.grad is not None and goal.grad.abs().sum() > 0
-    assert all(p.grad is None for name in ("actor", "world_model", "goal_vae") for p in models[name].parameters())
-    a_loss, c_loss, _ = imitate.multi_goal_loss(models, start, goal, models["world_model"].feat(pool), bc, cfgs)
-    goal.grad = None
-    (a_loss + c_loss).backward()
-    assert goal.grad is None
-    assert any(p.grad is not None and p.grad.abs().sum() > 0 for p in models["actor"].parameters())
-    assert all(p.grad is None for p in models["world_model"].parameters())
+    assert all(p.grad is None for name in ("actor", "critic", "world_model", "goal_vae") for p in models[name].parameters())
+
+
+def test_a_new_goal_search_is_one_function_and_one_entry(smoke_run, tmp_path, monkeypatch):
+    """A search registered in SEARCHES runs beside GIIL-ZS (demo 0) with its own seeds, its rows carry its config, the
+    same call again finds them finished, and the tables show its column paired with GIIL-ZS (demo 0)."""
+    import tables
+
+    run = str(tmp_path / "run")
+    shutil.copytree(smoke_run, run)
+    last_demo = lambda cell, seed: (cell.goals[-1], len(cell.goals) - 1, {"picked": seed})
+    entry = imitate.GoalSearch(last_demo, lambda ic, oc: 2, lambda ic, oc: {"eval_steps": ic.eval_steps, "last": True}, "last")
+    monkeypatch.setitem(imitate.SEARCHES, "last demo", entry)
+    monkeypatch.setattr(imitate, "METHODS", imitate.METHODS + ("last demo",))
+    rows = imitate.imitate(run, "walker_walk", "side", SMOKE, ["last demo"], zero_shot=False)
+    assert [(r["method"], r["seed"]) for r in rows] == [("GIIL-ZS (demo 0)", 0), ("last demo", 0), ("GIIL-ZS (demo 0)", 1), ("last demo", 1)]
+    assert rows[1]["config"] == {"eval_steps": SMOKE.eval_steps, "last": True} and rows[3]["picked"] == 1
+    assert imitate.imitate(run, "walker_walk", "side", SMOKE, ["last demo"], zero_shot=False) == []
+    assert "last demo (ours)" in tables.markdown_tables("walker", rows) and "last demo - ZS (demo 0), paired" in tables.markdown_tables("walker", rows)
 
 
 def test_unknown_demo_lists_the_valid_names(smoke_run):
     with pytest.raises(ValueError, match=r"unknown demo 'stickman_fly': valid demos are walker_stand, .*, stickman_jump$"):
-        imitate.imitate(smoke_run, "stickman_fly", "side", False, SMOKE)
+        imitate.imitate(smoke_run, "stickman_fly", "side", SMOKE)
 
 
 def test_missing_demos_are_collected_first(smoke_run, smoke_data, tmp_path):
@@ -67,7 +85,7 @@ def test_missing_demos_are_collected_first(smoke_run, smoke_data, tmp_path):
     ckpt = torch.load(os.path.join(run, "checkpoint.pt"), weights_only=True)
     ckpt["config"]["train"].update(data=data, preset="smoke")
     torch.save(ckpt, os.path.join(run, "checkpoint.pt"))
-    rows = imitate.imitate(run, "stickman_run", "side", True, SMOKE)
+    rows = imitate.imitate(run, "stickman_run", "side", SMOKE, ["GIIL-FT"])
     assert [r["method"] for r in rows] == ["GIIL-ZS"] * 2 + ["GIIL-ZS (demo 0)", "GIIL-FT"] * SMOKE.seeds
     assert sorted(os.listdir(os.path.join(data, "demos"))) == ["stickman_run_diagonal", "stickman_run_side"]
     assert sorted(os.listdir(os.path.join(data, "demos", "stickman_run_side"))) == ["00.npz", "01.npz"]
@@ -87,7 +105,7 @@ def test_default_run_follows_preset_and_agent(tmp_path):
 
 def test_no_checkpoint_names_the_train_command(tmp_path):
     with pytest.raises(FileNotFoundError, match="python train.py"):
-        imitate.imitate(str(tmp_path), "walker_run", "side", False, SMOKE)
+        imitate.imitate(str(tmp_path), "walker_run", "side", SMOKE)
 
 
 def test_demo_features_from_another_encoder_or_nan_are_errors(smoke_run, smoke_data, tmp_path):
@@ -102,11 +120,11 @@ def test_demo_features_from_another_encoder_or_nan_are_errors(smoke_run, smoke_d
     episode = dict(np.load(path))
     np.savez(path, **dict(episode, encoder="torchscript:other.pt:0123456789ab"))
     with pytest.raises(ValueError, match="other.pt"):
-        imitate.imitate(run, "walker_walk", "side", False, SMOKE)
+        imitate.imitate(run, "walker_walk", "side", SMOKE)
     episode["p"][3] = np.nan
     np.savez(path, **episode)
     with pytest.raises(ValueError, match=r"01.npz: key 'p' must be a finite"):
-        imitate.imitate(run, "walker_walk", "side", False, SMOKE)
+        imitate.imitate(run, "walker_walk", "side", SMOKE)
 
 
 def test_command_line(smoke_run, tmp_path):
@@ -124,43 +142,15 @@ def test_command_line(smoke_run, tmp_path):
     assert "GIIL-FT walker imitating walker_stand" in out.stdout
 
 
-def test_every_finetuning_seed_starts_from_the_pretrained_policy(smoke_run, tmp_path, monkeypatch):
-    """With psi finetuned too, each seed's finetuning and its GIIL-ZS (demo 0) evaluation see psi*, not the policy
-    that the previous seed finetuned."""
+def test_goal_searches_leave_the_policy_as_pretrained(smoke_run, tmp_path, monkeypatch):
+    """psi stays psi*: after GIIL-FT's seeds every weight of the agent is the checkpoint's."""
     run = str(tmp_path / "run")
     shutil.copytree(smoke_run, run)
-    seen, evaluated, finetune, run_episodes = [], [], imitate.finetune_goal, imitate.evaluate.run_episodes
-    actor_sum = lambda models: sum(p.sum().item() for p in models["actor"].parameters())
-
-    def recording(models, *args):
-        seen.append(actor_sum(models))
-        return finetune(models, *args)
-
-    def recording_eval(env_list, models, *args, **kwargs):
-        evaluated.append(actor_sum(models))
-        return run_episodes(env_list, models, *args, **kwargs)
-
-    monkeypatch.setattr(imitate, "finetune_goal", recording)
-    monkeypatch.setattr(imitate.evaluate, "run_episodes", recording_eval)
-    imitate.imitate(run, "walker_run", "side", True, dataclasses.replace(SMOKE, finetune_policy=1), zero_shot=False)
-    pretrained = actor_sum(checkpoint.load_run(run)[1])
-    assert len(seen) == SMOKE.seeds and all(s == pytest.approx(pretrained, abs=1e-6) for s in seen)
-    zs0 = evaluated[0::2]  # GIIL-ZS (demo 0), GIIL-FT, GIIL-ZS (demo 0), ...
-    assert len(zs0) == SMOKE.seeds and all(s == pytest.approx(pretrained, abs=1e-6) for s in zs0)
-    assert evaluated[1] != pytest.approx(pretrained, abs=1e-6)  # GIIL-FT's evaluation: psi moved
-
-
-def test_finetuning_continues_phase_1_optimisers_without_changing_them(smoke_run):
-    """L_MG's Adam starts from the checkpoint's states (deep copies: every seed starts from the same ones)."""
-    cfgs, models, ckpt = checkpoint.load_run(smoke_run)
-    states = ckpt["optims"]
-    before = [t.clone() for s in states["actor"]["state"].values() for t in s.values()]
-    assert before, "the smoke checkpoint must hold Adam moments for the actor"
-    demo_p = [np.random.default_rng(k).standard_normal((12, models["goal_vae"].feat_dim)).astype(np.float32) for k in range(2)]
-    p0 = torch.nn.functional.normalize(torch.as_tensor(demo_p[0][-1]), dim=-1)
-    imitate.finetune_goal(models, cfgs, dataclasses.replace(SMOKE, finetune_policy=1), ot_reward.OTConfig(iters=5), p0, demo_p, 0, "cpu", states)
-    after = [t for s in states["actor"]["state"].values() for t in s.values()]
-    assert all(torch.equal(a, b) for a, b in zip(before, after))
+    before = {k: {n: t.clone() for n, t in m.state_dict().items()} for k, m in checkpoint.load_run(run)[1].items()}
+    loaded, load_run = [], checkpoint.load_run
+    monkeypatch.setattr(checkpoint, "load_run", lambda *args: loaded.append(load_run(*args)) or loaded[-1])
+    imitate.imitate(run, "walker_run", "side", SMOKE, ["GIIL-FT"], zero_shot=False)
+    assert all(torch.equal(before[k][n], t) for k, m in loaded[0][1].items() for n, t in m.state_dict().items())
 
 
 def test_goal_gradient_flows_through_v_ot_only(smoke_run):
@@ -168,8 +158,7 @@ def test_goal_gradient_flows_through_v_ot_only(smoke_run):
     with a V_ot that reads the state it does."""
     cfgs, models, _ = checkpoint.load_run(smoke_run)
     feat_dim = models["world_model"].feat_dim
-    pool, _ = imitate.body_pool(models, cfgs, checkpoint.body_segments(cfgs), np.random.default_rng(0), "cpu", n=2)
-    start = {k: v[:6] for k, v in pool.items()}
+    start = posterior_starts(models, cfgs)
     demo_p = torch.nn.functional.normalize(torch.randn(2, 12, models["goal_vae"].feat_dim), dim=-1)
     grads = []
     for constant in (True, False):
@@ -191,7 +180,7 @@ def test_zero_shot_demo_0_is_finetuning_that_never_moves_the_goal(smoke_run, tmp
     run = str(tmp_path / "run")
     shutil.copytree(smoke_run, run)
     ic = dataclasses.replace(SMOKE, eval_episodes=2, goal_lr=1e-12)  # each Adam update moves g by ~1e-12: nothing
-    rows = imitate.imitate(run, "walker_walk", "side", True, ic, zero_shot=False)
+    rows = imitate.imitate(run, "walker_walk", "side", ic, ["GIIL-FT"], zero_shot=False)
     zs0 = [r["episode_scores"] for r in rows if r["method"] == "GIIL-ZS (demo 0)"]
     ft = [r["episode_scores"] for r in rows if r["method"] == "GIIL-FT"]
     assert len(zs0) == SMOKE.seeds and np.allclose(zs0, ft, atol=1e-6)

@@ -3,7 +3,6 @@ reads the task reward; end to end through imitate.py (smoke)."""
 import os
 
 import numpy as np
-import pytest
 import torch
 
 import checkpoint
@@ -68,40 +67,27 @@ def test_refinement_never_reads_the_task_reward(smoke_run):
 
 def test_online_end_to_end_pairs_with_its_zero_shot_start(smoke_run):
     oc = online.OnlineConfig(**presets.PRESETS["online"]["smoke"])
-    rows = imitate.imitate(smoke_run, "stickman_walk", "side", False, SMOKE, zero_shot=False, online_cfg=oc)
-    on = [r for r in rows if r["method"] == tables.ONLINE]
+    rows = imitate.imitate(smoke_run, "stickman_walk", "side", SMOKE, ["GIIL-online"], oc, zero_shot=False)
+    on = [r for r in rows if r["method"] == "GIIL-online"]
     zs0 = [r for r in rows if r["method"] == "GIIL-ZS (demo 0)"]
     assert len(on) == len(zs0) == oc.seeds
     assert on[0]["env_steps"] == online.budget(oc, 2) * SMOKE.eval_steps and on[0]["chosen_demo"] in (0, 1)
-    stored = [r for r in rundir.read_jsonl(os.path.join(smoke_run, "results.jsonl")) if r["method"] == tables.ONLINE]
-    assert stored[-1]["config"] == tables.result_config(SMOKE, tables.ONLINE, oc) and "schedule" in stored[-1]["config"]
+    stored = [r for r in rundir.read_jsonl(os.path.join(smoke_run, "results.jsonl")) if r["method"] == "GIIL-online"]
+    assert stored[-1]["config"] == imitate.result_config(SMOKE, "GIIL-online", oc) and "schedule" in stored[-1]["config"]
     text = tables.markdown_tables("walker", rows)
     assert "GIIL-online (ours)" in text and "online - ZS (demo 0), paired" in text
     # the same command again finds its rows finished (as read back from JSON) and runs nothing
-    assert imitate.imitate(smoke_run, "stickman_walk", "side", False, SMOKE, zero_shot=False, online_cfg=oc) == []
+    assert imitate.imitate(smoke_run, "stickman_walk", "side", SMOKE, ["GIIL-online"], oc, zero_shot=False) == []
 
 
-def test_posterior_candidates_start_at_the_zero_shot_goal(smoke_run):
-    """'posterior': q(s | p_T)'s mean first (GIIL-ZS's goal), then seeded draws around it; a config without the field's
-    default in its stored form, so rows written before the field existed still count."""
+def test_posterior_goals_start_at_the_zero_shot_goal(smoke_run):
+    """q(s | p_T)'s mean first (GIIL-ZS's goal), then seeded draws around it (fidelity.py's ranking goals)."""
     _, models, _ = checkpoint.load_run(smoke_run)
     vae, p_last = models["goal_vae"], np.random.default_rng(0).standard_normal(models["goal_vae"].feat_dim).astype(np.float32)
     goals = online.posterior_goals(vae, p_last, 10, seed=3)
     assert goals.shape == (10, vae.deter + vae.stoch) and torch.equal(goals[0], vae.goal(torch.as_tensor(p_last)).detach())
     assert torch.equal(goals, online.posterior_goals(vae, p_last, 10, seed=3)) and not torch.equal(goals, online.posterior_goals(vae, p_last, 10, seed=4))
     assert len(torch.unique(goals, dim=0)) == 10
-    assert "candidates" not in tables.result_config(SMOKE, tables.ONLINE, online.OnlineConfig())
-    assert tables.result_config(SMOKE, tables.ONLINE, online.OnlineConfig(candidates="posterior"))["candidates"] == "posterior"
-    with pytest.raises(ValueError, match="candidates='demo': choose from demos, posterior"):
-        online.OnlineConfig(candidates="demo")
-
-
-def test_online_with_posterior_candidates_end_to_end(smoke_run):
-    oc = online.OnlineConfig(**{**presets.PRESETS["online"]["smoke"], "candidates": "posterior"})
-    rows = imitate.imitate(smoke_run, "stickman_run", "side", False, SMOKE, zero_shot=False, online_cfg=oc)
-    on = [r for r in rows if r["method"] == tables.ONLINE]
-    assert len(on) == oc.seeds and on[0]["chosen_candidate"] in (0, 1) and "chosen_demo" not in on[0]
-    assert on[0]["config"]["candidates"] == "posterior"
 
 
 def test_goal_candidates_probe_sets_and_pairing(smoke_run):
@@ -148,7 +134,7 @@ def test_goal_probe_scores_every_goal_by_every_objective(smoke_run):
 def test_finetune_and_online_share_their_zero_shot_start(smoke_run):
     """One command with both: GIIL-ZS (demo 0) once per seed, not once per method."""
     oc = online.OnlineConfig(**presets.PRESETS["online"]["smoke"])
-    rows = imitate.imitate(smoke_run, "walker_jump", "diagonal", True, SMOKE, zero_shot=False, online_cfg=oc)
+    rows = imitate.imitate(smoke_run, "walker_jump", "diagonal", SMOKE, ["GIIL-FT", "GIIL-online"], oc, zero_shot=False)
     zs0 = [r["seed"] for r in rows if r["method"] == "GIIL-ZS (demo 0)"]
     assert sorted(zs0) == list(range(max(SMOKE.seeds, oc.seeds)))
-    assert sum(r["method"] == tables.ONLINE for r in rows) == oc.seeds
+    assert sum(r["method"] == "GIIL-online" for r in rows) == oc.seeds

@@ -146,7 +146,7 @@ def test_demos_of_two_lengths_are_refused(smoke_run, smoke_data, tmp_path):
     collect.save_episode(path, {k: v[:11] if v.ndim else v for k, v in episode.items()})
     run = copy_run(smoke_run, tmp_path, data)
     with pytest.raises(ValueError, match=r"walker_run_side mixes episodes of 21 and 11 steps .*00.npz.*01.npz"):
-        imitate.imitate(run, "walker_run", "side", True, SMOKE_IMITATE)
+        imitate.imitate(run, "walker_run", "side", SMOKE_IMITATE, ["GIIL-FT"])
 
 
 def test_collection_into_another_presets_folder_is_refused(smoke_data, tmp_path):
@@ -206,7 +206,7 @@ def test_phase_2_divergence_stops_before_writing_a_result(smoke_run, tmp_path, m
 
     monkeypatch.setattr(imitate, "goal_inference_loss", nan_loss)
     with pytest.raises(ValueError, match=r"GIIL-FT seed 0: Eq. 5 L_GI is nan at update 0: stopped"):
-        imitate.imitate(run, "walker_run", "side", True, SMOKE_IMITATE, zero_shot=False)
+        imitate.imitate(run, "walker_run", "side", SMOKE_IMITATE, ["GIIL-FT"], zero_shot=False)
     rows = rundir.read_jsonl(os.path.join(run, "results.jsonl"))
     assert [r["method"] for r in rows] == ["GIIL-ZS (demo 0)"]  # its zero-shot evaluation, written before; no GIIL-FT row
 
@@ -235,7 +235,7 @@ def test_imitate_flags_out_of_range(given, message, smoke_run, tmp_path):
     run = copy_run(smoke_run, tmp_path)
     ic = imitate.ImitateConfig(**{**presets.PRESETS["imitate"]["smoke"], **given})
     with pytest.raises(ValueError, match=message):
-        imitate.imitate(run, "walker_run", "side", True, ic)
+        imitate.imitate(run, "walker_run", "side", ic, ["GIIL-FT"])
     assert not os.path.exists(os.path.join(run, "results.jsonl"))
 
 
@@ -261,11 +261,11 @@ def test_phase_2_threads_are_the_command_lines_not_the_runs(smoke_run, tmp_path)
     threads = torch.get_num_threads()
     torch.set_num_threads(1)
     try:
-        imitate.imitate(run, "walker_run", "side", False, SMOKE_IMITATE)
+        imitate.imitate(run, "walker_run", "side", SMOKE_IMITATE)
         assert torch.get_num_threads() == 1
     finally:
         torch.set_num_threads(threads)
-    out = subprocess.run([sys.executable, "imitate.py", "--table", "--run", run, "--threads", "0"], cwd=ROOT, capture_output=True, text=True)
+    out = subprocess.run([sys.executable, "tables.py", "--run", run, "--threads", "0"], cwd=ROOT, capture_output=True, text=True)
     assert out.returncode == 1 and out.stderr == "error: --threads 0: must be >= 1\n"
 
 
@@ -304,7 +304,7 @@ def test_results_with_a_cut_last_line_still_table(tmp_path):
     row = {"demo": "walker_run", "view": "side", "method": "GIIL-ZS", "seed": 0, "score": 1.0}
     with open(path, "w") as f:
         f.write(json.dumps(row) + "\n" + json.dumps(row)[:20])  # a kill while appending
-    assert tables.load_results(str(tmp_path)) == [row]
+    assert rundir.load_results(str(tmp_path)) == [row]
     rundir.append_jsonl(path, dict(row, seed=1))
     assert [r["seed"] for r in rundir.read_jsonl(path)] == [0, 1] and open(path).read().count("\n") == 2
     with open(path, "a") as f:
@@ -314,7 +314,7 @@ def test_results_with_a_cut_last_line_still_table(tmp_path):
     with open(path, "a") as f:
         f.write("not json\n" + json.dumps(row) + "\n")
     with pytest.raises(ValueError, match=r"results.jsonl: line 5 is not a JSON row"):
-        tables.load_results(str(tmp_path))
+        rundir.load_results(str(tmp_path))
 
 
 # --- 6. a bad episode file is named ---
@@ -417,7 +417,7 @@ def test_a_run_folder_holding_another_agent_is_refused(smoke_run, tmp_path, monk
         imitate.main()
     assert sorted(os.listdir(tmp_path / "agents" / "walker")) == ["checkpoint.pt"] and not glob.glob(str(tmp_path / "runs" / "*" / "*.jsonl"))
     with pytest.raises(ValueError, match="holds a stickman agent"):
-        imitate.table(os.path.join("agents", "walker"), SMOKE_IMITATE)
+        tables.run_table(os.path.join("agents", "walker"), SMOKE_IMITATE)
     with pytest.raises(ValueError, match=r"^--export agents/stickman: .* trained a walker agent; export it to agents/walker$"):
         rundir.export_agent(smoke_run, os.path.join("agents", "stickman"))  # how such a folder comes about
     assert not os.path.exists(os.path.join("agents", "stickman"))
@@ -440,19 +440,17 @@ def test_a_missing_checkpoint_names_the_command_for_its_body_and_preset(tmp_path
 @pytest.mark.parametrize("script, argv, message", [
     # abbreviations (argparse's prefix matching) are refused by every entry point: today's --he(lp) printed the help
     *[(script, argv + ["--hel"], "unrecognized arguments: --hel") for script, argv in (
-        ("train.py", []), ("imitate.py", []), ("collect.py", []), ("experts.py", []), ("genrl.py", ["--demo", "walker_run"]),
-        ("aime_nob.py", ["--demo", "walker_run"]), ("evaluate.py", ["runs/x"]), ("bench.py", []), ("video_encoder.py", []), ("envs.py", []))],
+        ("train.py", []), ("imitate.py", ["--demo", "walker_run"]), ("collect.py", []), ("experts.py", []), ("genrl.py", ["--demo", "walker_run"]),
+        ("aime_nob.py", ["--demo", "walker_run"]), ("evaluate.py", ["runs/x"]), ("tables.py", ["--table", "x"]), ("bench.py", []), ("video_encoder.py", []), ("envs.py", []))],
     ("imitate.py", ["--demo", "walker_run", "--finetune", "--seed", "3", "--threads", "0"], "unrecognized arguments: --seed 3"),
     ("train.py", ["--pres", "smoke", "--steps", "0"], "unrecognized arguments: --pres smoke"),
     # a flag that does nothing in the mode chosen
-    ("imitate.py", ["--demo", "stickman_run", "--methods", "genrl"], "--methods works with --table only: add --table, or drop it"),
-    ("imitate.py", ["--demo", "stickman_run", "--settings", "CE-SV"], "--settings works with --table only"),
-    ("imitate.py", ["--demo", "stickman_run", "--shard", "0/2"], "--shard works with --table only"),
-    ("imitate.py", ["--table", "--demo", "stickman_run"], "--demo does nothing with --table (it runs every demo and view): drop it"),
-    ("imitate.py", ["--table", "--finetune"], "--finetune does nothing with --table"),
+    ("imitate.py", ["--demo", "stickman_run", "--methods", "genrl"], "unrecognized arguments: --methods genrl"),
+    ("tables.py", ["--table", "rows.jsonl", "--shard", "0/2"], "--shard does nothing with --table: drop it"),
+    ("tables.py", ["--table", "rows.jsonl", "--steps", "3"], "--steps does nothing with --table: drop it"),
+    ("tables.py", ["--run", "runs/x", "--min-seeds", "2"], "--min-seeds does nothing with --run: drop it"),
+    ("tables.py", ["--curves", "rows.jsonl", "--budgets", "genrl=1000"], "--budgets does nothing with --curves: drop it"),
     ("imitate.py", ["--demo", "stickman_run", "--seeds", "3"], "--seeds sets GIIL-FT: add --finetune, or drop it"),
-    ("imitate.py", ["--demo", "stickman_run", "--online-candidates", "posterior"], "--online-candidates sets GIIL-online: add --online"),
-    ("imitate.py", ["--table", "--methods", "giil", "--online-candidates", "posterior"], "--online-candidates sets GIIL-online"),
     ("train.py", ["--evaluate", "--resume"], "--resume is for training: it does nothing with --export or --evaluate"),
     ("collect.py", ["--features", "--data", "no_data", "--up-first"], "--task-episodes, --history-from and --up-first shape D_body: add --env BODY"),
     ("experts.py", ["--history"], "--history works with --eval only"),
@@ -468,13 +466,13 @@ def test_a_cell_runs_in_one_process_at_a_time(smoke_run, tmp_path, monkeypatch):
     """Two --table processes without --shard: the second skips the cells the first is running; a --demo run of such a
     cell stops with one line."""
     run = copy_run(smoke_run, tmp_path)
-    lock = tables.cell_lock(run, "walker_stand", "side")
+    lock = rundir.cell_lock(run, "walker_stand", "side")
     other = subprocess.Popen(["sleep", "60"])
     try:
         os.makedirs(os.path.dirname(lock))
         with open(lock, "w") as f:
             f.write(str(other.pid))
-        imitate.table(run, SMOKE_IMITATE, settings=("SE-SV",), demos_per_cell=2, shard=(0, 4))  # that cell alone
+        tables.run_table(run, SMOKE_IMITATE, settings=("SE-SV",), demos_per_cell=2, shard=(0, 4))  # that cell alone
         assert not os.path.exists(os.path.join(run, "results.jsonl")) and open(lock).read() == str(other.pid)
         monkeypatch.setattr(rundir, "use_threads", lambda threads: None)
         monkeypatch.setattr(sys, "argv", ["imitate.py", "--demo", "walker_stand", "--run", run, "--preset", "smoke"])
@@ -484,7 +482,7 @@ def test_a_cell_runs_in_one_process_at_a_time(smoke_run, tmp_path, monkeypatch):
     finally:
         other.kill()
         other.wait()
-    imitate.table(run, SMOKE_IMITATE, settings=("SE-SV",), demos_per_cell=2, shard=(0, 4))  # its process gone: the lock is stale
+    tables.run_table(run, SMOKE_IMITATE, settings=("SE-SV",), demos_per_cell=2, shard=(0, 4))  # its process gone: the lock is stale
     assert len(rundir.read_jsonl(os.path.join(run, "results.jsonl"))) == 2 + 2 * SMOKE_IMITATE.seeds and not os.path.exists(lock)
 
 
@@ -526,9 +524,9 @@ def test_ctrl_c_then_the_same_imitate_command_goes_on_without_duplicates(smoke_r
     path = os.path.join(run, "results.jsonl")
     assert [(r["method"], r["seed"]) for r in rundir.read_jsonl(path)] == [("GIIL-ZS", 0), ("GIIL-ZS", 1), ("GIIL-ZS (demo 0)", 0)]
     ic = imitate.ImitateConfig(**presets.PRESETS["imitate"]["smoke"], preset="smoke")  # what --preset smoke makes
-    rows = imitate.imitate(run, "walker_run", "side", True, ic)
+    rows = imitate.imitate(run, "walker_run", "side", ic, ["GIIL-FT"])
     assert [(r["method"], r["seed"]) for r in rows] == [("GIIL-FT", 0), ("GIIL-ZS (demo 0)", 1), ("GIIL-FT", 1)]
-    assert imitate.imitate(run, "walker_run", "side", True, ic) == [] and len(rundir.read_jsonl(path)) == 6
+    assert imitate.imitate(run, "walker_run", "side", ic, ["GIIL-FT"]) == [] and len(rundir.read_jsonl(path)) == 6
 
 
 def test_an_empty_episode_file_is_collected_again(smoke_data, tmp_path):

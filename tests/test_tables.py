@@ -10,6 +10,7 @@ import numpy as np
 
 import imitate
 import presets
+import rundir
 import tables
 from conftest import probe_script
 
@@ -21,11 +22,11 @@ SMOKE = imitate.ImitateConfig(**presets.PRESETS["imitate"]["smoke"])
 def test_table_keeps_finished_cells(smoke_run, tmp_path):
     run = str(tmp_path / "run")
     shutil.copytree(smoke_run, run)
-    imitate.table(run, SMOKE, demos_per_cell=2)
+    tables.run_table(run, SMOKE, demos_per_cell=2)
     lines = open(os.path.join(run, "results.jsonl")).read().splitlines()
     text = open(os.path.join(run, "tables.md")).read()
     assert text.count("| SE-SV |") == 5 and "| CE-CV |" in text  # Table 1/2 shape, then one per task
-    imitate.table(run, SMOKE, demos_per_cell=2)  # nothing missing: nothing runs again
+    tables.run_table(run, SMOKE, demos_per_cell=2)  # nothing missing: nothing runs again
     assert open(os.path.join(run, "results.jsonl")).read().splitlines() == lines
     # cells cut off after their first demo / seed: only the missing evaluations run, each once
     cut = {("walker_walk", "side", "GIIL-ZS", 1), ("stickman_run", "diagonal", "GIIL-FT", 1)}
@@ -33,7 +34,7 @@ def test_table_keeps_finished_cells(smoke_run, tmp_path):
     assert len(kept) == len(lines) - 2
     with open(os.path.join(run, "results.jsonl"), "w") as f:
         f.write("".join(line + "\n" for line in kept))
-    imitate.table(run, SMOKE, demos_per_cell=2)
+    tables.run_table(run, SMOKE, demos_per_cell=2)
     lines = open(os.path.join(run, "results.jsonl")).read().splitlines()
     assert {tuple(json.loads(line)[k] for k in ("demo", "view", "method", "seed")) for line in lines[len(kept):]} == cut
     assert len(lines) == len(kept) + 2
@@ -44,12 +45,12 @@ def test_table_keeps_finished_cells(smoke_run, tmp_path):
             r["demo_returns"] = [0.0] * len(r["demo_returns"])
     with open(os.path.join(run, "results.jsonl"), "w") as f:
         f.write("".join(json.dumps(r) + "\n" for r in rows))
-    imitate.table(run, SMOKE, demos_per_cell=2)
+    tables.run_table(run, SMOKE, demos_per_cell=2)
     new = [json.loads(line) for line in open(os.path.join(run, "results.jsonl")).read().splitlines()[len(lines):]]
     assert {(r["demo"], r["view"]) for r in new} == {("walker_stand", "side")} and len(new) == 2 + 2 * SMOKE.seeds
     # other finetuning settings: the GIIL-FT cells run again, no zero-shot cell does; only in the settings asked for
     before = len(open(os.path.join(run, "results.jsonl")).read().splitlines())
-    imitate.table(run, dataclasses.replace(SMOKE, goal_lr=1e-4), settings=("CE-CV",), demos_per_cell=2)
+    tables.run_table(run, dataclasses.replace(SMOKE, goal_lr=1e-4), settings=("CE-CV",), demos_per_cell=2)
     new = [json.loads(line) for line in open(os.path.join(run, "results.jsonl")).read().splitlines()[before:]]
     assert {(r["method"], r["setting"]) for r in new} == {("GIIL-FT", "CE-CV")} and len(new) == 4 * SMOKE.seeds
     text = open(os.path.join(run, "tables.md")).read()
@@ -58,8 +59,9 @@ def test_table_keeps_finished_cells(smoke_run, tmp_path):
 
 def test_the_zero_shot_columns_depend_on_the_evaluation_alone():
     """A GIIL-ZS row's config is the evaluation's (episodes and steps); GIIL-FT's adds the finetuning's, not the seeds."""
-    assert tables.result_config(SMOKE, "GIIL-ZS") == {"eval_episodes": SMOKE.eval_episodes, "eval_steps": SMOKE.eval_steps}
-    assert "seeds" not in tables.result_config(SMOKE, "GIIL-FT") and tables.result_config(SMOKE, "GIIL-FT")["goal_lr"] == SMOKE.goal_lr
+    oc = imitate.online.OnlineConfig()
+    assert imitate.result_config(SMOKE, "GIIL-ZS", oc) == {"eval_episodes": SMOKE.eval_episodes, "eval_steps": SMOKE.eval_steps}
+    assert "seeds" not in imitate.result_config(SMOKE, "GIIL-FT", oc) and imitate.result_config(SMOKE, "GIIL-FT", oc)["goal_lr"] == SMOKE.goal_lr
 
 
 def test_shards_together_make_the_whole_table_once(smoke_run, tmp_path, monkeypatch):
@@ -71,13 +73,13 @@ def test_shards_together_make_the_whole_table_once(smoke_run, tmp_path, monkeypa
 
     def others_finish_meanwhile(run_dir, demo, view, *args, **kwargs):
         if (demo, view) == ("stickman_jump", "diagonal") and not others_ran:
-            others_ran.append(len({(r["demo"], r["view"]) for r in tables.load_results(run)}))
+            others_ran.append(len({(r["demo"], r["view"]) for r in rundir.load_results(run)}))
             for i in (1, 2):
-                imitate.table(run, SMOKE, demos_per_cell=2, shard=(i, 3))
+                tables.run_table(run, SMOKE, demos_per_cell=2, shard=(i, 3))
         return real(run_dir, demo, view, *args, **kwargs)
 
     monkeypatch.setattr(imitate, "imitate", others_finish_meanwhile)
-    imitate.table(run, SMOKE, demos_per_cell=2, shard=(0, 3))
+    tables.run_table(run, SMOKE, demos_per_cell=2, shard=(0, 3))
     assert others_ran == [5]  # cells 0, 3, ..., 12 of shard 0 were done when the others ran
     rows = [json.loads(line) for line in open(os.path.join(run, "results.jsonl"))]
     keys = [(r["demo"], r["view"], r["method"], r["seed"]) for r in rows]
@@ -92,13 +94,13 @@ def test_shards_split_the_settings_asked_for(smoke_run, tmp_path, monkeypatch):
     first, second = [], []
     for i, ran in enumerate((first, second)):
         monkeypatch.setattr(imitate, "imitate", lambda run_dir, demo, view, *args, **kwargs: ran.append((demo, view)))
-        imitate.table(run, SMOKE, settings=("SE-CV", "CE-CV"), demos_per_cell=2, shard=(i, 2))
+        tables.run_table(run, SMOKE, settings=("SE-CV", "CE-CV"), demos_per_cell=2, shard=(i, 2))
     assert len(first) == len(second) == 4 and len(set(first + second)) == 8
     assert {view for _, view in first + second} == {"diagonal"}  # SE-CV and CE-CV are the diagonal view's settings
 
 
 def test_baselines_join_the_table_as_columns_and_are_not_rerun(smoke_run, tmp_path):
-    """--methods giil,genrl,aime-nob: each cell asked for gets the baselines' seeds, the tables show
+    """--methods finetune,genrl,aime-nob: each cell asked for gets the baselines' seeds, the tables show
     their columns beside the paper's, and a second call runs nothing; an unknown method is a one-line error."""
     import pytest
 
@@ -106,25 +108,25 @@ def test_baselines_join_the_table_as_columns_and_are_not_rerun(smoke_run, tmp_pa
     shutil.copytree(smoke_run, run, ignore=shutil.ignore_patterns("results.jsonl"))
     smoke = dataclasses.replace(SMOKE, preset="smoke")  # the baselines' smoke presets too
     one_cell = dict(demos_per_cell=2, shard=(0, 16))  # cell 0: stand, SE-SV
-    imitate.table(run, smoke, methods=("genrl", "aime-nob"), **one_cell)
-    rows = tables.load_results(run)
+    tables.run_table(run, smoke, methods=("genrl", "aime-nob"), **one_cell)
+    rows = rundir.load_results(run)
     seeds = {m: presets.PRESETS["genrl"]["smoke"]["seeds"] if m == "GenRL" else presets.PRESETS["aime_nob"]["smoke"]["seeds"] for m in ("GenRL", "AIME-NoB")}
     assert {r["method"] for r in rows} == {"GenRL", "AIME-NoB"} and {(r["task"], r["setting"]) for r in rows} == {("stand", "SE-SV")}
     assert len(rows) == sum(seeds.values())  # each baseline's seeds, no GIIL (not asked for)
     text = open(os.path.join(run, "tables.md")).read()
     assert "| GenRL (ours) | AIME-NoB (ours) | FT - ZS (demo 0), paired | GIIL-ZS (paper) | GIIL-FT (paper) | GenRL (paper) | AIME-NoB (paper) |" in text
     assert "| SE-SV | - | - | - | " in text and "| - | 42.52 | 68.10 | 86.05 | 84.80 |" in text  # GIIL not run; the paper's walker Table 1
-    imitate.table(run, smoke, methods=("genrl", "aime-nob"), **one_cell)
-    assert len(tables.load_results(run)) == len(rows)  # nothing missing: nothing runs again
-    imitate.table(run, smoke, methods=("giil",), **one_cell)
-    assert {r["method"] for r in tables.load_results(run)[len(rows):]} == {"GIIL-ZS", "GIIL-ZS (demo 0)", "GIIL-FT"}
+    tables.run_table(run, smoke, methods=("genrl", "aime-nob"), **one_cell)
+    assert len(rundir.load_results(run)) == len(rows)  # nothing missing: nothing runs again
+    tables.run_table(run, smoke, methods=("finetune",), **one_cell)
+    assert {r["method"] for r in rundir.load_results(run)[len(rows):]} == {"GIIL-ZS", "GIIL-ZS (demo 0)", "GIIL-FT"}
     assert "| GenRL (ours) | AIME-NoB (ours) |" in open(os.path.join(run, "tables.md")).read()  # the baselines' cells stay
-    with pytest.raises(ValueError, match="--methods dreamer: choose from giil, online, genrl, aime-nob"):
-        imitate.table(run, SMOKE, methods=("giil", "dreamer"))
+    with pytest.raises(ValueError, match="--methods dreamer: choose from finetune, online, genrl, aime-nob"):
+        tables.run_table(run, SMOKE, methods=("finetune", "dreamer"))
     # --budgets: GenRL's column at 2 updates, its 3-update rows (the preset's) no longer shown, then run again at 2
-    genrl_rows = len([r for r in tables.load_results(run) if r["method"] == "GenRL"])
-    imitate.table(run, smoke, methods=("genrl",), budgets=tables.parse_budgets("genrl=2"), **one_cell)
-    at_two = [r for r in tables.load_results(run) if r["method"] == "GenRL"][genrl_rows:]
+    genrl_rows = len([r for r in rundir.load_results(run) if r["method"] == "GenRL"])
+    tables.run_table(run, smoke, methods=("genrl",), budgets=tables.parse_budgets("genrl=2"), **one_cell)
+    at_two = [r for r in rundir.load_results(run) if r["method"] == "GenRL"][genrl_rows:]
     assert [r["config"]["steps"] for r in at_two] == [2] * seeds["GenRL"]
     with pytest.raises(ValueError, match=r"--budgets dreamer=\.\.\.: choose from genrl, aime-nob"):
         tables.parse_budgets("dreamer=5")
@@ -151,7 +153,7 @@ def test_ft_pairs_pairs_seeds_of_two_variants(tmp_path):
                                                                           method=method, seed=seed, score=score, config=config)
     frozen = [row("GIIL-FT", s, 50.0 + s) for s in range(2)] + [row("GIIL-FT", 0, 10.0, demo="walker_run")]
     runs = {"a": [row("GIIL-ZS (demo 0)", s, 40.0) for s in range(2)] + frozen + [row("GIIL-ZS (demo 0)", 0, 5.0, demo="walker_run")]
-            + [row("GIIL-FT", 0, 30.0, finetune_policy=1), row("GIIL-FT", 0, 45.0, finetune_policy=1), row("GIIL-FT", 1, 60.0, finetune_policy=1)],
+            + [row("GIIL-FT", 0, 30.0, goal_lr=1e-4), row("GIIL-FT", 0, 45.0, goal_lr=1e-4), row("GIIL-FT", 1, 60.0, goal_lr=1e-4)],
             "b": frozen}
     for name, rows in runs.items():
         os.makedirs(tmp_path / name)
@@ -214,6 +216,6 @@ def test_a_table_from_rows_alone_picks_one_budget_and_refuses_mixed_rows(tmp_pat
     out = subprocess.run([sys.executable, "tables.py", "--table", str(path), "--budgets", "genrl=1000"], cwd=ROOT, capture_output=True, text=True)
     assert out.returncode == 0 and "| SE-SV | - | - | 51.0 +- 0.6 | 11.0 +- 0.6 | - |" in out.stdout
     out = subprocess.run([sys.executable, "tables.py", "--curves", str(path), "--budgets", "genrl=1000"], cwd=ROOT, capture_output=True, text=True)
-    assert out.returncode == 2 and "--budgets works with --table only: drop it" in out.stderr
-    out = subprocess.run([sys.executable, "tables.py", "--table", str(path), "--seeds", "5"], cwd=ROOT, capture_output=True, text=True)
-    assert out.returncode == 2 and "--seeds works with --curves only: drop it" in out.stderr
+    assert out.returncode == 2 and "--budgets does nothing with --curves: drop it" in out.stderr
+    out = subprocess.run([sys.executable, "tables.py", "--table", str(path), "--min-seeds", "5"], cwd=ROOT, capture_output=True, text=True)
+    assert out.returncode == 2 and "--min-seeds does nothing with --table: drop it" in out.stderr
