@@ -25,6 +25,7 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
+import checkpoint
 import collect
 import envs
 import policy
@@ -194,10 +195,30 @@ def summary(scores):
     return lines
 
 
-def write_goal_reaching(run_dir, scores):
+BENCHMARK = ("eval_episodes", "eval_steps", "eval_seed")  # the TrainConfig fields a benchmark's scores depend on
+
+
+def write_goal_reaching(run_dir, scores, tc, weights):
+    """runs/<name>/goal_reaching.json: the scores, with the agent that made them (body, preset, checkpoint.weights_id)
+    and the benchmark's settings."""
+    record = {"agent": tc.env, "preset": tc.preset, "weights": weights, "settings": {k: getattr(tc, k) for k in BENCHMARK}, "scores": scores}
     path = os.path.join(run_dir, "goal_reaching.json")
-    rundir.atomic_write(path, lambda f: f.write(json.dumps(scores).encode()))
+    rundir.atomic_write(path, lambda f: f.write(json.dumps(record).encode()))
     return path
+
+
+def read_goal_reaching(run_dir):
+    """A run's goal_reaching.json, refused unless it scores the agent the run's checkpoint holds now."""
+    path, again = os.path.join(run_dir, "goal_reaching.json"), f"run `python train.py --evaluate --run-dir {run_dir}`"
+    if not os.path.exists(path):
+        raise FileNotFoundError(f"no {path}: {again} first")
+    record = json.load(open(path))
+    if "weights" not in record:
+        raise ValueError(f"{path} was written before results named their agent: {again} again")
+    now = checkpoint.weights_id(rundir.run_checkpoint(run_dir))
+    if record["weights"] != now:
+        raise ValueError(f"{path} scores the agent {record['weights']}, but {run_dir} now holds {now} (trained since): {again} again")
+    return record
 
 
 def learning_curve(run_dir):
@@ -237,12 +258,21 @@ def learning_curve(run_dir):
 def across_runs(run_dirs):
     """Training seeds compared: each run's goal_reaching.json reduced to its per-task means, then mean +- s.e. over the
     runs (the s.e. of a claim about the method, not about one agent's episodes)."""
-    per_run = {}
+    seen = {}
     for run_dir in run_dirs:
-        path = os.path.join(run_dir, "goal_reaching.json")
-        if not os.path.exists(path):
-            raise FileNotFoundError(f"no {path}: run `python train.py --evaluate --run-dir {run_dir}` first")
-        scores = json.load(open(path))
+        other = seen.setdefault(os.path.realpath(run_dir), run_dir)
+        if other != run_dir:
+            raise ValueError(f"{other} and {run_dir} are the same run: pass each training seed once")
+    records = {run_dir: read_goal_reaching(run_dir) for run_dir in run_dirs}
+    first = run_dirs[0]
+    for run_dir, record in records.items():
+        for key in ("agent", "preset", "settings"):
+            if record[key] != records[first][key]:
+                raise ValueError(f"{first} and {run_dir} differ in {key} ({records[first][key]} against {record[key]}): compare runs of "
+                                 f"one body and preset, benchmarked alike")
+    per_run = {}
+    for run_dir, record in records.items():
+        scores = record["scores"]
         per_run[run_dir] = {t: float(np.mean(s["policy"])) for t, s in scores.items()}
         per_run[run_dir]["average"] = float(np.mean([per_run[run_dir][t] for t in envs.BODY_TASKS if t in scores]))
     columns = list(next(iter(per_run.values())))
@@ -302,5 +332,5 @@ if __name__ == "__main__":
     try:
         runs = parser.parse_args().runs
         print("\n".join(across_runs(runs) + [""] + reachable_across_runs(runs) + [""] + gradient_share(runs)))
-    except FileNotFoundError as error:
+    except (FileNotFoundError, ValueError) as error:
         raise SystemExit(f"error: {error}")

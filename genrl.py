@@ -192,6 +192,7 @@ def load_cell(run_dir, demo, view, data=None):
     """A phase-1 run and one demo folder (data/demos/<demo>_<view>): configs, models, the demos' features, task and
     setting. data: the data folder, default the run's."""
     device = "cuda" if torch.cuda.is_available() else "cpu"
+    rundir.not_training(run_dir)
     cfgs, models, ckpt = checkpoint.load_run(run_dir, device)
     if data is not None:
         cfgs["train"] = dataclasses.replace(cfgs["train"], data=data)
@@ -205,7 +206,7 @@ def load_cell(run_dir, demo, view, data=None):
     envs._check_name("task", task, envs.TASKS)
     return {"run_dir": run_dir, "cfgs": cfgs, "models": models, "ckpt": ckpt, "device": device, "demo": demo, "view": view,
             "demos": demos, "demo_returns": [round(d["return"], 3) for d in demos], "task": task,
-            "setting": envs.setting(tc.env, demo_body, view)}
+            "setting": envs.setting(tc.env, demo_body, view), "weights": checkpoint.weights_id(ckpt)}
 
 
 def evaluate_actor(cell, world_model, actor, episodes, steps, seed):
@@ -259,7 +260,8 @@ def load_state(parts, state):
 def state_path(cell, method, cfg, seed):
     """Where a seed's training state goes after each budget: one file per cell, seed and settings but the budget, so
     that a longer budget goes on from it."""
-    key = hashlib.sha1(json.dumps({**result_config(cfg, 0), "demo_returns": cell["demo_returns"]}, sort_keys=True).encode()).hexdigest()[:10]
+    key = hashlib.sha1(json.dumps({**result_config(cfg, 0), "demo_returns": cell["demo_returns"], "weights": cell["weights"]},
+                                  sort_keys=True).encode()).hexdigest()[:10]  # never a state trained on another agent's world model
     return os.path.join(cell["run_dir"], "baselines", f"{method}_{cell['demo']}_{cell['view']}_s{seed}_{key}.pt")
 
 
@@ -299,16 +301,15 @@ def run_seeds(cell, method, cfg, train, **extra):
 
 
 def cell_rows(cell, method, config):
-    """This cell's rows of `method` made with the same demos (their returns) and config, the latest per seed."""
-    return [r for r in rundir.load_results(cell["run_dir"]) if r["method"] == method and r["demo"] == cell["demo"]
-            and r["view"] == cell["view"] and r.get("demo_returns") == cell["demo_returns"] and r.get("config") == config]
+    """This cell's rows of `method` made by the same agent's weights with the same demos (their returns) and config."""
+    return rundir.finished(rundir.load_results(cell["run_dir"]), cell["demo"], cell["view"], cell["demo_returns"], {method: config}, cell["weights"])
 
 
 def append_row(cell, method, seed, scores, seconds, config, **extra):
     """One result row in imitate.py's format, appended to runs/<name>/results.jsonl -> the row."""
     row = {"agent": cell["cfgs"]["train"].env, "demo": cell["demo"], "view": cell["view"], "task": cell["task"], "setting": cell["setting"],
            "method": method, "seed": seed, "score": float(np.mean(scores)), "episode_scores": scores, "time": round(seconds, 1),
-           "demo_returns": cell["demo_returns"], "config": config, **extra}
+           "demo_returns": cell["demo_returns"], "config": config, "weights": cell["weights"], **extra}
     rundir.append_jsonl(os.path.join(cell["run_dir"], "results.jsonl"), row)
     return row
 

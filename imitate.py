@@ -180,22 +180,24 @@ def result_config(ic, method, oc):
     return {k: getattr(ic, k) for k in EVALUATION_FIELDS} if method in ZERO_SHOT else SEARCHES[method].config(ic, oc)
 
 
-def done_here(rows, demo, view, returns, ic, oc):
-    """The (method, seed) pairs of a cell's rows that count (rundir.finished) under these settings."""
+def done_here(rows, demo, view, returns, ic, oc, weights):
+    """The (method, seed) pairs of a cell's rows that count (rundir.finished) under these settings and weights."""
     configs = {m: result_config(ic, m, oc) for m in METHODS}
-    return {(r["method"], r["seed"]) for r in rundir.finished(rows, demo, view, returns, configs)}
+    return {(r["method"], r["seed"]) for r in rundir.finished(rows, demo, view, returns, configs, weights)}
 
 
 def imitate(run_dir, demo, view, ic, searches=(), oc=None, zero_shot=True, done=None):
     """For one demo folder: GIIL-ZS on every demo (unless not zero_shot), then each goal search named (SEARCHES' keys)
     for its seeds, each seed beside GIIL-ZS (demo 0) on the same evaluation seeds. Appends each evaluation to
-    runs/<name>/results.jsonl and returns the rows. done: (method, seed) pairs not run again (tables.py); None: those
-    results.jsonl has for these demos and settings (a rerun after Ctrl-C goes on, appending no duplicates)."""
+    runs/<name>/results.jsonl, each row with the agent's weights (checkpoint.weights_id), and returns the rows. done:
+    (method, seed) pairs not run again (tables.py); None: those results.jsonl has for these demos, settings and weights
+    (a rerun after Ctrl-C goes on, appending no duplicates; a retrained agent runs again)."""
     rundir.check_flags(ic)
     oc = oc or online.OnlineConfig(**PRESETS["online"][ic.preset])
     device = "cuda" if torch.cuda.is_available() else "cpu"
+    rundir.not_training(run_dir)
     cfgs, models, ckpt = checkpoint.load_run(run_dir, device)
-    tc = cfgs["train"]
+    tc, weights = cfgs["train"], checkpoint.weights_id(ckpt)
     rundir.fast_matmul()  # oneDNN where it is faster and still fp32 (rundir.py)
     folder = checkpoint.demo_folder(cfgs, demo, view)
     demo_body, task = demo.rsplit("_", 1)
@@ -209,7 +211,7 @@ def imitate(run_dir, demo, view, ic, searches=(), oc=None, zero_shot=True, done=
     out_dir, results_path = os.path.join(run_dir, "imitate"), os.path.join(run_dir, "results.jsonl")
     os.makedirs(out_dir, exist_ok=True)
     if done is None:
-        done = done_here(rundir.load_results(run_dir), demo, view, demo_returns, ic, oc)
+        done = done_here(rundir.load_results(run_dir), demo, view, demo_returns, ic, oc, weights)
         if done:
             print(f"{results_path} has {len(done)} of these evaluations (these demos and settings): kept, not run again")
     done, rows = set(done), []  # done grows as this call evaluates: the searches share their GIIL-ZS (demo 0) seeds
@@ -226,7 +228,7 @@ def imitate(run_dir, demo, view, ic, searches=(), oc=None, zero_shot=True, done=
             evaluate.write_video(os.path.join(out_dir, f"{demo}_{view}_{method.replace(' ', '_')}_s{seed}.mp4"), demos[k]["pixels"], frames[0])
         row = {"agent": tc.env, "demo": demo, "view": view, "task": task, "setting": where, "method": method, "seed": seed,
                "score": float(np.mean(scores)), "episode_scores": scores, "time": round(time.time() - t0, 1), "demo_returns": demo_returns,
-               "config": result_config(ic, method, oc), **extra}
+               "config": result_config(ic, method, oc), "weights": weights, **extra}
         rundir.append_jsonl(results_path, row)
         rows.append(row)
         done.add((method, seed))

@@ -154,24 +154,39 @@ def append_jsonl(path, row):
 
 
 def load_results(run_dir):
-    """The latest row per (demo, view, method, seed, demos' returns, settings) of runs/<name>/results.jsonl: a rerun
-    replaces its own earlier result, never one made with other demos or settings."""
+    """The latest row per row_key of runs/<name>/results.jsonl: a rerun replaces its own earlier result, never one made
+    with other demos, settings or weights."""
     return latest(read_jsonl(os.path.join(run_dir, "results.jsonl")))
 
 
+def row_key(r):
+    """What tells two result rows apart: cell, method, seed, demos (their returns), settings and the agent's weights."""
+    return (r["demo"], r["view"], r["method"], r["seed"], json.dumps(r.get("demo_returns")), json.dumps(r.get("config")), r.get("weights"))
+
+
 def latest(rows_in):
-    """The last of the rows with the same (demo, view, method, seed, demos' returns, settings) (load_results)."""
-    rows = {}
-    for r in rows_in:
-        rows[(r["demo"], r["view"], r["method"], r["seed"], json.dumps(r.get("demo_returns")), json.dumps(r.get("config")))] = r
-    return list(rows.values())
+    """The last of the rows with the same row_key (load_results)."""
+    return list({row_key(r): r for r in rows_in}.values())
 
 
-def finished(rows, demo, view, returns, configs):
-    """A cell's rows that count: made with the demos now on disk (their returns) and, for a method of `configs`, with
-    the settings configs[method] (imitate.result_config)."""
+def finished(rows, demo, view, returns, configs, weights):
+    """A cell's rows that count: made by the agent `weights` (checkpoint.weights_id) with the demos now on disk (their
+    returns) and, for a method of `configs`, with the settings configs[method] (imitate.result_config)."""
     return [r for r in rows if r["demo"] == demo and r["view"] == view and r.get("demo_returns") == returns
-            and r["method"] in configs and r.get("config") == configs[r["method"]]]
+            and r.get("weights") == weights and r["method"] in configs and r.get("config") == configs[r["method"]]]
+
+
+def not_training(run_dir):
+    """A one-line ValueError while another live process trains run_dir (holds its lock): its checkpoint is a
+    mid-training one, not the agent."""
+    path = os.path.join(run_dir, "lock")
+    try:
+        pid = int(open(path).read().strip() or 0)
+    except (FileNotFoundError, ValueError):
+        return
+    if pid != os.getpid() and alive(pid):
+        raise ValueError(f"{run_dir} is being trained now by process {pid} ({path}): its checkpoint is not the final agent; "
+                         f"wait for the training to end, then run this again")
 
 
 def cell_lock(run_dir, demo, view):

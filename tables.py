@@ -213,8 +213,8 @@ def run_table(run_dir, ic, oc=None, settings=SETTINGS, shard=(0, 1), methods=("f
     is missing from results.jsonl, then writes the tables of every finished cell. `settings` limits which settings run
     now; shard (i, N) runs only the cells i, i + N, ... of those (tables' order: N processes share one table, rows
     appended under a lock and told apart by method and seed). A row counts only if it was made with the demos now on
-    disk (their returns) and with the settings asked for (imitate.result_config): regenerating D_demo or changing a
-    setting runs the cells again instead of mixing old and new results."""
+    disk (their returns), with the settings asked for (imitate.result_config) and by this checkpoint's weights:
+    regenerating D_demo, changing a setting or retraining the agent runs the cells again instead of mixing results."""
     known = [s.flag for s in imitate.SEARCHES.values()] + list(BASELINES)
     unknown = [m for m in methods if m not in known]
     if unknown:
@@ -222,8 +222,9 @@ def run_table(run_dir, ic, oc=None, settings=SETTINGS, shard=(0, 1), methods=("f
     oc = oc or online.OnlineConfig(**PRESETS["online"][ic.preset])
     rundir.check_flags(ic)
     baselines = baseline_configs(ic.preset, budgets)  # their finished cells are shown whichever methods run now
-    cfgs = checkpoint.load_run(run_dir)[0]
-    agent, shown = cfgs["train"].env, []
+    rundir.not_training(run_dir)
+    cfgs, _, ckpt = checkpoint.load_run(run_dir)
+    agent, shown, weights = cfgs["train"].env, [], checkpoint.weights_id(ckpt)
     configs = {**{m: imitate.result_config(ic, m, oc) for m in imitate.METHODS}, **{m: b[2] for m, b in baselines.items()}}
     searches = [m for m, s in imitate.SEARCHES.items() if s.flag in methods]
     # the shards split the cells of `settings`, so that none is left idle; a cell left out runs nothing, its finished rows still count
@@ -241,7 +242,7 @@ def run_table(run_dir, ic, oc=None, settings=SETTINGS, shard=(0, 1), methods=("f
             if not os.path.isdir(folder):
                 continue
             returns = [round(e["return"], 3) for e in collect.load_folder(folder, ())]
-            done = {(r["method"], r["seed"]) for r in rundir.finished(rundir.load_results(run_dir), demo, view, returns, configs)}
+            done = {(r["method"], r["seed"]) for r in rundir.finished(rundir.load_results(run_dir), demo, view, returns, configs, weights)}
             count = lambda m: sum(method == m for method, _ in done)
             # only the seeds missing (a cell cut off goes on where it was); GIIL-online's candidates are GIIL-ZS's goals
             missing = [m for m in searches if min(count(m), count("GIIL-ZS (demo 0)")) < imitate.SEARCHES[m].seeds(ic, oc)]
@@ -252,13 +253,26 @@ def run_table(run_dir, ic, oc=None, settings=SETTINGS, shard=(0, 1), methods=("f
                 module, cfg, _ = baselines[method]
                 if count(method) < cfg.seeds and run_now and name in methods:
                     module.run_cell(run_dir, demo, view, cfg)
-            shown.append((demo, view, returns))
+            shown.append((demo, view, returns, configs, weights))
     rows = rundir.load_results(run_dir)  # read once all cells ran: the rows other shards appended meanwhile count too
-    text = markdown_tables(agent, [r for cell in shown for r in rundir.finished(rows, *cell, configs)])
+    text = markdown_tables(agent, [r for cell in shown for r in rundir.finished(rows, *cell)])
     path = os.path.join(run_dir, "tables.md")
     rundir.atomic_write(path, lambda f: f.write(text.encode()))
     print(text)
     print(f"wrote {path}")
+
+
+def merge_files(paths):
+    """The rows of several results files, each file's latest (rundir.latest); a row in two files counts once, and two files
+    that score the same evaluation (rundir.row_key) differently are a one-line error naming both."""
+    merged = {}
+    for path in paths:
+        for r in rundir.latest(rundir.read_jsonl(path)):
+            have = merged.setdefault(rundir.row_key(r), (path, r))
+            if have[1]["score"] != r["score"]:
+                raise ValueError(f"{have[0]} and {path} score {r['method']} seed {r['seed']} on {r['demo']} ({r['view']} view) differently "
+                                 f"({have[1]['score']:.2f} against {r['score']:.2f}), made alike: pass one of them")
+    return [r for _, r in merged.values()]
 
 
 def main():
@@ -305,7 +319,7 @@ def main():
     missing = [path for path in paths if not os.path.isfile(path)]
     if missing:
         raise ValueError(f"{missing[0]}: no such file; pass results.jsonl files (runs/<name>/results.jsonl, docs/results/*.jsonl)")
-    rows = rundir.latest(r for path in paths for r in rundir.read_jsonl(path))  # a row in two files counts once
+    rows = merge_files(paths)
     agents = {r["agent"] for r in rows}
     if len(agents) != 1:
         raise ValueError(f"the rows are of agents {sorted(agents)}: pass one agent's files")

@@ -68,7 +68,7 @@ def test_cell_end_to_end_and_resumable(smoke_run, tmp_path):
     shutil.copytree(smoke_run, run, ignore=shutil.ignore_patterns("results.jsonl"))  # other tests' rows of the shared run
     rows = aime_nob.run_cell(run, "stickman_stand", "side", SMOKE)
     assert [r["seed"] for r in rows] == [0, 1]
-    keys = {"agent", "demo", "view", "task", "setting", "method", "seed", "score", "episode_scores", "time", "demo_returns", "config", "env_steps"}
+    keys = {"agent", "demo", "view", "task", "setting", "method", "seed", "score", "episode_scores", "time", "demo_returns", "config", "weights", "env_steps"}
     for r in rows:
         assert set(r) == keys and r["method"] == "AIME-NoB" and r["setting"] == "CE-SV" and r["task"] == "stand"
         assert r["env_steps"] == r["config"]["env_steps"] == SMOKE.env_steps and len(r["episode_scores"]) == 2 and np.isfinite(r["score"])

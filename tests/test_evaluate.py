@@ -11,14 +11,20 @@ import presets
 from conftest import probe_script
 
 
-def test_summary_and_across_runs_by_hand(tmp_path):
-    runs = []
+def test_summary_and_across_runs_by_hand(smoke_run, tmp_path):
+    import shutil
+
+    import torch
+
+    runs, tc = [], checkpoint.load_run(smoke_run)[0]["train"]
+    weights = checkpoint.weights_id(torch.load(os.path.join(smoke_run, "checkpoint.pt"), weights_only=True))
     for k, (stand, walk, run) in enumerate([([10, 20], [50, 70], [0, 10]), ([30, 30], [40, 40], [20, 20])]):
         folder = tmp_path / f"r{k}"
         folder.mkdir()
+        shutil.copy(os.path.join(smoke_run, "checkpoint.pt"), folder)
         scores = {"stand": {"policy": stand, "random": [0, 0]}, "walk": {"policy": walk, "random": [1, 3]},
                   "run": {"policy": run, "random": [0, 0]}, "jump": {"policy": [99, 99], "random": [0, 0]}}
-        evaluate.write_goal_reaching(str(folder), scores)
+        evaluate.write_goal_reaching(str(folder), scores, tc, weights)
         runs.append(str(folder))
     lines = evaluate.summary(scores)
     assert lines[-1].split()[:2] == ["average", "stand/walk/run"] and "30.0 +-  0.0" in lines[-1]  # (30 + 40 + 20) / 3, jump left out
@@ -28,6 +34,35 @@ def test_summary_and_across_runs_by_hand(tmp_path):
     assert table[-1].startswith("| mean +- s.e. over 2 runs | 22.5 +- 7.5 | 50.0 +- 10.0 | 12.5 +- 7.5 | 99.0 +- 0.0 | 28.3 +- 1.7 |")
     with pytest.raises(FileNotFoundError, match="train.py --evaluate --run-dir"):
         evaluate.across_runs([str(tmp_path)])
+
+
+def test_across_runs_refuses_what_is_not_one_comparison(smoke_run, tmp_path):
+    """The same run twice, runs benchmarked with other settings, a benchmark of weights since trained on, and a file
+    that names no agent: each a one-line error."""
+    import dataclasses
+    import shutil
+
+    import torch
+
+    tc = checkpoint.load_run(smoke_run)[0]["train"]
+    a, b = str(tmp_path / "a"), str(tmp_path / "b")
+    for run in (a, b):
+        shutil.copytree(smoke_run, run)
+    with pytest.raises(ValueError, match=r"/a and .*/b/\.\./a are the same run: pass each training seed once"):
+        evaluate.across_runs([a, os.path.join(b, "..", "a")])
+    weights = checkpoint.weights_id(torch.load(os.path.join(b, "checkpoint.pt"), weights_only=True))
+    evaluate.write_goal_reaching(b, json.load(open(os.path.join(b, "goal_reaching.json")))["scores"], dataclasses.replace(tc, eval_steps=2), weights)
+    with pytest.raises(ValueError, match=r"differ in settings .*'eval_steps': 10.* against .*'eval_steps': 2"):
+        evaluate.across_runs([a, b])
+    ckpt = torch.load(os.path.join(b, "checkpoint.pt"), weights_only=True)
+    ckpt["models"]["actor"] = {k: v + 1e-3 for k, v in ckpt["models"]["actor"].items()}
+    torch.save(ckpt, os.path.join(b, "checkpoint.pt"))
+    with pytest.raises(ValueError, match=r"scores the agent 6:\w+, but .*b now holds 6:\w+ \(trained since\): run `python train.py --evaluate"):
+        evaluate.across_runs([a, b])
+    with open(os.path.join(b, "goal_reaching.json"), "w") as f:
+        json.dump(json.load(open(os.path.join(a, "goal_reaching.json")))["scores"], f)  # the format before the agent was named
+    with pytest.raises(ValueError, match="was written before results named their agent"):
+        evaluate.across_runs([a, b])
 
 
 def test_run_episodes_sums_each_environment_s_true_reward(smoke_run):
@@ -48,7 +83,7 @@ def test_run_episodes_sums_each_environment_s_true_reward(smoke_run):
         actions = rng.uniform(-1, 1, (2, env_list[0].action_dim)).astype(np.float32)
         total += [env.step(a)[1] for env, a in zip(env_list, actions)]
     assert np.allclose(returns, total) and heights[-1] == [env.physics.named.data.xpos["torso", "z"] for env in env_list]
-    scores = json.load(open(os.path.join(smoke_run, "goal_reaching.json")))
+    scores = json.load(open(os.path.join(smoke_run, "goal_reaching.json")))["scores"]
     assert set(scores) == {"stand", "walk", "run", "jump"}
 
 

@@ -93,7 +93,7 @@ def test_cell_end_to_end_and_resumable(smoke_run, tmp_path):
     shutil.copytree(smoke_run, run, ignore=shutil.ignore_patterns("results.jsonl"))  # other tests' rows of the shared run
     rows = genrl.run_cell(run, "stickman_run", "diagonal", SMOKE)
     assert [r["seed"] for r in rows] == [0, 1]
-    keys = {"agent", "demo", "view", "task", "setting", "method", "seed", "score", "episode_scores", "time", "demo_returns", "config"}
+    keys = {"agent", "demo", "view", "task", "setting", "method", "seed", "score", "episode_scores", "time", "demo_returns", "config", "weights"}
     for r in rows:
         assert set(r) == keys and r["method"] == "GenRL" and r["setting"] == "CE-CV" and r["task"] == "run" and r["agent"] == "walker"
         assert len(r["episode_scores"]) == SMOKE.eval_episodes == 2 and np.isfinite(r["score"]) and r["score"] == np.mean(r["episode_scores"])
@@ -124,8 +124,7 @@ def _copy(smoke_run, tmp_path, name):
 
 
 def _state(run, cfg, seed=0):
-    cell = {"run_dir": run, "demo": "walker_walk", "view": "side", "demo_returns": genrl.load_cell(run, "walker_walk", "side")["demo_returns"]}
-    return torch.load(genrl.state_path(cell, "GenRL", cfg, seed), weights_only=True)
+    return torch.load(genrl.state_path(genrl.load_cell(run, "walker_walk", "side"), "GenRL", cfg, seed), weights_only=True)
 
 
 def test_a_budget_row_is_the_row_of_a_run_of_that_budget(smoke_run, tmp_path):

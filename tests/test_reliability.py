@@ -569,3 +569,60 @@ def test_a_video_cut_off_half_way_leaves_the_old_file(tmp_path, monkeypatch):
     monkeypatch.setattr(evaluate.cv2, "VideoWriter", writer)
     evaluate.write_video(path, frames, frames)
     assert open(path, "rb").read(12)[4:8] == b"ftyp" and os.listdir(tmp_path) == [os.path.basename(path)]
+
+
+# --- 9. a result names the agent that made it (issue 83): a changed agent is evaluated again, never credited ---
+
+def test_rows_of_other_weights_are_not_credited_to_the_agent(smoke_run, tmp_path):
+    """imitate's rows carry checkpoint.weights_id; after the weights change the same command runs again, and the
+    tables count the new agent's rows only."""
+    run = copy_run(smoke_run, tmp_path)
+    first = imitate.imitate(run, "walker_run", "side", SMOKE_IMITATE)
+    path = os.path.join(run, "checkpoint.pt")
+    ckpt = torch.load(path, weights_only=True)
+    assert {r["weights"] for r in first} == {checkpoint.weights_id(ckpt)} and first[0]["weights"].startswith("6:")
+    assert imitate.imitate(run, "walker_run", "side", SMOKE_IMITATE) == []  # the same agent: nothing runs again
+    ckpt["models"]["actor"] = {k: v + 1e-3 for k, v in ckpt["models"]["actor"].items()}  # as a resumed training would
+    torch.save(ckpt, path)
+    second = imitate.imitate(run, "walker_run", "side", SMOKE_IMITATE)
+    assert len(second) == len(first) and {r["weights"] for r in second} == {checkpoint.weights_id(ckpt)} != {first[0]["weights"]}
+
+
+def test_a_baseline_never_resumes_a_state_of_other_weights(smoke_run, tmp_path):
+    import genrl
+
+    cell = genrl.load_cell(copy_run(smoke_run, tmp_path), "walker_run", "side")
+    cfg = genrl.GenRLConfig(**presets.PRESETS["genrl"]["smoke"])
+    other = dict(cell, weights="6:0000000000000000")
+    assert genrl.state_path(cell, "GenRL", cfg, 0) != genrl.state_path(other, "GenRL", cfg, 0)
+    row = genrl.append_row(cell, "GenRL", 0, [1.0], 1.0, genrl.result_config(cfg))
+    assert row["weights"] == cell["weights"] and genrl.cell_rows(cell, "GenRL", row["config"]) == [row]
+    assert genrl.cell_rows(other, "GenRL", row["config"]) == []
+
+
+def test_a_run_in_training_is_not_imitated(smoke_run, tmp_path):
+    run = copy_run(smoke_run, tmp_path)
+    trainer = subprocess.Popen(["sleep", "60"])
+    try:
+        with open(os.path.join(run, "lock"), "w") as f:
+            f.write(str(trainer.pid))
+        with pytest.raises(ValueError, match=rf"is being trained now by process {trainer.pid} .*: its checkpoint is not the final agent"):
+            imitate.imitate(run, "walker_run", "side", SMOKE_IMITATE)
+        with pytest.raises(ValueError, match="is being trained now"):
+            tables.run_table(run, SMOKE_IMITATE)
+    finally:
+        trainer.kill()
+        trainer.wait()
+    assert len(imitate.imitate(run, "walker_run", "side", SMOKE_IMITATE)) == 2  # the trainer gone: its stale lock is no obstacle
+
+
+def test_two_files_scoring_one_evaluation_differently_are_named(tmp_path):
+    row = dict(agent="walker", demo="walker_run", view="side", task="run", setting="SE-SV", method="GIIL-ZS", seed=0, score=70.0,
+               time=1.0, demo_returns=[1.0], config={}, weights="6:ab")
+    a, b = tmp_path / "a.jsonl", tmp_path / "b.jsonl"
+    a.write_text(json.dumps(row) + "\n")
+    b.write_text(json.dumps(dict(row, score=20.0)) + "\n" + json.dumps(dict(row, seed=1)) + "\n")
+    with pytest.raises(ValueError, match=r"a.jsonl and .*b.jsonl score GIIL-ZS seed 0 on walker_run \(side view\) differently \(70.00 against 20.00\)"):
+        tables.merge_files([str(a), str(b)])
+    b.write_text(json.dumps(row) + "\n" + json.dumps(dict(row, seed=1)) + "\n")
+    assert len(tables.merge_files([str(a), str(b)])) == 2  # the same row in both counts once

@@ -25,8 +25,11 @@ def test_smoke_run_writes_checkpoint_metrics_and_goal_reaching(smoke_run):
     lines = [json.loads(l) for l in open(os.path.join(smoke_run, "metrics.jsonl"))]
     assert [l["step"] for l in lines] == [2, 4, 6] and "actor_loss" in lines[-1] and "open_loop" in lines[-1] and -1 <= lines[-1]["open_loop_p_cos"] <= 1
     assert all(len(l["reward_reachable"]) == 3 for l in lines)  # from the fresh actor's row (policy_start 2) on
-    scores = json.load(open(os.path.join(smoke_run, "goal_reaching.json")))
-    assert list(scores) == ["stand", "walk", "run", "jump"]
+    record = json.load(open(os.path.join(smoke_run, "goal_reaching.json")))
+    scores = record["scores"]
+    assert list(scores) == ["stand", "walk", "run", "jump"] and record["agent"] == "walker" and record["preset"] == "smoke"
+    assert record["weights"] == checkpoint.weights_id(torch.load(os.path.join(smoke_run, "checkpoint.pt"), weights_only=True))
+    assert record["settings"] == {"eval_episodes": 1, "eval_steps": 10, "eval_seed": checkpoint.TrainConfig.eval_seed}
     assert all(len(s["policy"]) == len(s["random"]) == 2 for s in scores.values())  # smoke: 2 demos x 1 episode
     assert os.path.getsize(os.path.join(smoke_run, "learning_curve.png")) > 1000
     imagination = json.load(open(os.path.join(smoke_run, "imagination.json")))
@@ -132,7 +135,8 @@ def test_command_line_runs_and_resumes(smoke_data, tmp_path):
     assert "average stand/walk/run" in first.stdout
     evaluated = subprocess.run(base + ["--evaluate", "--eval-episodes", "2"], cwd=cwd, capture_output=True, text=True)
     assert evaluated.returncode == 0, evaluated.stderr[-2000:]
-    assert all(len(s["policy"]) == 4 for s in json.load(open(os.path.join(run, "goal_reaching.json"))).values())  # 2 demos x 2
+    record = json.load(open(os.path.join(run, "goal_reaching.json")))
+    assert all(len(s["policy"]) == 4 for s in record["scores"].values()) and record["settings"]["eval_episodes"] == 2  # 2 demos x 2
     again = subprocess.run(base + ["--resume", "--steps", "8"], cwd=cwd, capture_output=True, text=True)
     assert again.returncode == 0 and "resumed" in again.stdout
     assert torch.load(os.path.join(run, "checkpoint.pt"), weights_only=True)["step"] == 8
