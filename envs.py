@@ -97,10 +97,14 @@ def setting(agent_body, demo_body, view):
     return ("SE" if demo_body == agent_body else "CE") + "-" + ("SV" if view == "side" else "CV")
 
 
+def cross_body(agent):
+    """The demonstrator of an agent's cross-embodiment (CE) cells: the next body in BODIES (the paper's two: each other)."""
+    return BODIES[(BODIES.index(agent) + 1) % len(BODIES)]
+
+
 def demo_of(agent, task, where):
     """(demo name, view) of a setting: SE/CE picks the demonstrator's body, SV/CV its camera."""
-    other = [b for b in BODIES if b != agent][0]
-    return f"{agent if where.startswith('SE') else other}_{task}", "side" if where.endswith("SV") else "diagonal"
+    return f"{agent if where.startswith('SE') else cross_body(agent)}_{task}", "side" if where.endswith("SV") else "diagonal"
 
 
 def cells(agent):

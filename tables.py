@@ -74,7 +74,7 @@ def markdown_tables(agent, rows):
 
     methods = SHOWN + tuple(m for m in imitate.METHODS + tuple(BASELINES.values()) if m not in SHOWN and any(r["method"] == m for r in rows))
     paired = [m for m in methods if m in imitate.SEARCHES]  # each minus GIIL-ZS (demo 0), seed by seed
-    paper_methods = [m for m in methods if m in PAPER_METHODS]  # the paper's columns of the methods shown
+    paper_methods = [m for m in methods if m in PAPER_METHODS and agent in PAPER]  # the paper's columns of the methods shown
     out = []
     for task in ("all",) + envs.TASKS:
         title = f"{agent} agent, {'all tasks (as Table 1/2)' if task == 'all' else task}: normalised score, mean +- s.e."
@@ -156,7 +156,7 @@ def markdown_curves(agent, rows, settings, seeds=3):
            "| method | budget | score | " + " / ".join(envs.TASKS) + " | cells x seeds | minutes per seed | paper |", "|---|---|---|---|---|---|---|"]
     for method, points in sorted(curve_points(rows, settings).items()):
         paper = (f"{np.mean([PAPER[agent]['all'][SETTINGS.index(w)][PAPER_METHODS.index(method)] for w in settings]):.1f}"
-                 if method in PAPER_METHODS else "-")
+                 if method in PAPER_METHODS and agent in PAPER else "-")
         line, cells = curve(points, 1 if method.startswith("GIIL") else seeds)
         for budget, scores, seconds in line:
             kept = [(c[0].rsplit("_", 1)[1], score) for c, _, score, _ in points[budget] if c in cells]
@@ -182,7 +182,7 @@ def plot_curves(agent, rows, settings, path, seeds=3):
         xy = [(np.mean(seconds) / 60, np.mean(scores), evaluate.stderr(scores)) for _, scores, seconds in line]
         x, y, e = zip(*xy)
         line = ax.errorbar(x, y, yerr=e, marker="o", capsize=3, label=f"{method} ({len(cells)} cells)")
-        if method in PAPER_METHODS:
+        if method in PAPER_METHODS and agent in PAPER:
             paper = np.mean([PAPER[agent]["all"][SETTINGS.index(w)][PAPER_METHODS.index(method)] for w in settings])
             ax.axhline(paper, ls="--", lw=1, color=line[0].get_color())
     ax.set_xscale("log")

@@ -60,7 +60,7 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from envs import BODIES, SETTINGS, TASKS, VIEWS
+from envs import BODIES, SETTINGS, TASKS, VIEWS, cross_body
 
 WINDOW = 8  # k: InternVideo2 in GenRL, 8-frame windows at stride 1 (Mazzaglia et al. 2024)
 SIZE = 64  # renders are 64x64 (envs.py)
@@ -297,7 +297,7 @@ def confusion(features, agent, setting, kind):
     Centroids: the normalised mean descriptor of each task over the agent's own side-view demos. In SE-SV a
     demo is one of those, so it is left out of its own task's centroid (leave-one-out).
     """
-    demo_body = agent if setting.startswith("SE") else next(b for b in BODIES if b != agent)
+    demo_body = agent if setting.startswith("SE") else cross_body(agent)
     view = "side" if setting.endswith("SV") else "diagonal"
     own = {task: np.stack([descriptor(p, kind) for p in features[agent, task, "side"]]) for task in TASKS}
     if setting == "SE-SV" and min(len(d) for d in own.values()) < 2:

@@ -219,3 +219,17 @@ def test_a_table_from_rows_alone_picks_one_budget_and_refuses_mixed_rows(tmp_pat
     assert out.returncode == 2 and "--budgets does nothing with --curves: drop it" in out.stderr
     out = subprocess.run([sys.executable, "tables.py", "--table", str(path), "--min-seeds", "5"], cwd=ROOT, capture_output=True, text=True)
     assert out.returncode == 2 and "--min-seeds does nothing with --table: drop it" in out.stderr
+
+
+def test_a_third_body_needs_no_edit_of_the_tables(monkeypatch):
+    """With a body the paper has no numbers for: CE demos come from the next body in envs.BODIES, and the tables show
+    ours without the paper's columns."""
+    import envs
+
+    monkeypatch.setattr(envs, "BODIES", ("walker", "stickman", "hopper"))
+    assert [envs.cross_body(b) for b in envs.BODIES] == ["stickman", "hopper", "walker"]
+    assert envs.demo_of("hopper", "run", "CE-CV") == ("walker_run", "diagonal") and envs.demo_of("hopper", "run", "SE-SV") == ("hopper_run", "side")
+    rows = [_row("GIIL-ZS", "walker_run", 0, 40.0, 1.0, setting="CE-SV"), _row("GIIL-FT", "walker_run", 0, 50.0, 1.0, setting="CE-SV")]
+    text = tables.markdown_tables("hopper", [dict(r, agent="hopper") for r in rows])
+    assert "| CE-SV | 40.0 +- 0.0 | - | 50.0 +- 0.0 | - |" in text and "(paper)" not in text
+    assert "| GIIL-ZS | - | 40.0 +- 0.0 | - / - / 40.0 / - | 1 x 1 | 0.0 | - |" in tables.markdown_curves("hopper", rows, ["CE-SV"])
