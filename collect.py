@@ -59,19 +59,12 @@ class CollectConfig:
     # task episodes come from the snapshots at or after this fraction of each expert's last history step (ours; 0 = the whole
     # history, kept: the later half alone did not raise the stickman's goal reaching, docs/ablations.md, Phase 1)
     history_from: float = 0.0
-    # task episodes begin with the task's final expert (the same action noise) until the body is up (envs.posture >= UP
-    # for UP_HOLD steps, at most UP_MAX steps), then the snapshot acts: every episode shows a getting up, as the replay of
-    # an agent that learned to get up early would (ours, a flag: docs/results.md, "Where the points are lost")
-    up_first: bool = False
     seed: int = 0
 
 
 def preset_config(preset):
     """The CollectConfig of a preset (presets.py), for D_body and D_demo alike."""
     return CollectConfig(**PRESETS["collect"][preset])
-
-
-UP, UP_HOLD, UP_MAX = 0.8, 20, 200  # up_first: "up" is posture >= UP held UP_HOLD steps; the final expert acts at most UP_MAX
 
 
 def episode_jobs(body, cfg, data):
@@ -86,7 +79,7 @@ def episode_jobs(body, cfg, data):
         snapshots = [s for s in snapshots if s >= cfg.history_from * snapshots[-1]]
         rng = np.random.default_rng([cfg.seed, 1 + t])
         for k in range(cfg.task_episodes):
-            jobs.append(dict(kind=task, body=body, task=task, index=k, snapshot=int(rng.choice(snapshots)), up_first=cfg.up_first))
+            jobs.append(dict(kind=task, body=body, task=task, index=k, snapshot=int(rng.choice(snapshots))))
     out = []
     for job in jobs:
         job.update(steps=cfg.episode_steps, noise=cfg.action_noise, seed=[cfg.seed, envs.BODIES.index(body), len(out)], views=("side",))
@@ -133,32 +126,25 @@ def simulate(job):
         actor = experts.load_expert(job["body"], job["task"])
     elif job["kind"] != "explore":
         actor = experts.load_expert(job["body"], job["task"], job["snapshot"])
-    first = experts.load_expert(job["body"], job["task"]) if job.get("up_first") else None  # acts until the body is up
     states, actions, rewards = [obs], [np.zeros(env.action_dim, np.float32)], [0.0]
     frames = {view: [env.render(view)] for view in job["views"]}
-    held, hold, up, switch = None, 0, 0, None
-    for t in range(job["steps"]):
+    held, hold = None, 0
+    for _ in range(job["steps"]):
         if actor is None:  # exploration: a uniform random action held for 1-10 steps
             if hold == 0:
                 held, hold = rng.uniform(-1, 1, env.action_dim), int(rng.integers(1, 11))
             action, hold = held, hold - 1
         else:
             with torch.no_grad(), default_matmul():
-                mean = (actor if first is None else first)(torch.as_tensor(obs)[None, None], deterministic=True)[0][0, 0].double().numpy()
+                mean = actor(torch.as_tensor(obs)[None, None], deterministic=True)[0][0, 0].double().numpy()
             action = np.clip(mean + job["noise"] * rng.standard_normal(env.action_dim), -1, 1)
         obs, reward, _, _, _ = env.step(action)
-        if first is not None:
-            up = up + 1 if envs.posture(job["body"], env.physics.named.data.xpos["torso", "z"], env.physics.named.data.xmat["torso", "zz"]) >= UP else 0
-            if up >= UP_HOLD or t + 1 >= UP_MAX:
-                first, switch = None, t + 1
         states.append(obs)
         actions.append(np.asarray(action, np.float32))
         rewards.append(reward)
         for view in job["views"]:
             frames[view].append(env.render(view))
     source = "explore" if job["kind"] == "explore" else f"{job['task']}@{job['snapshot'] or 'final'}"
-    if switch is not None:
-        source += f" after the final expert's first {switch} steps"
     common = dict(
         state=np.array(states, np.float32), action=np.array(actions), reward=np.array(rewards, np.float32),
         is_first=np.arange(len(states)) == 0, body=job["body"], task="explore" if job["kind"] == "explore" else job["task"],
@@ -357,8 +343,6 @@ def main():
     parser.add_argument("--task-episodes", type=int, default=None, help="D_body episodes per task (default: the preset's)")
     parser.add_argument("--history-from", type=float, default=None, help="task episodes replay the snapshots from this fraction of "
                         "each expert's learning history on (default: the preset's)")
-    parser.add_argument("--up-first", action="store_true", help="task episodes begin with the task's final expert until the body is up, "
-                        "then the snapshot acts (CollectConfig.up_first)")
     args = parser.parse_args()
     cfg, args.data = preset_config(args.preset), args.data or DATA[args.preset]
     if args.task_episodes is not None:
@@ -369,9 +353,8 @@ def main():
         if not 0 <= args.history_from <= 1:
             parser.error(f"--history-from {args.history_from}: pass a fraction in [0, 1]")
         cfg = replace(cfg, history_from=args.history_from)
-    cfg = replace(cfg, up_first=args.up_first)
-    if not args.env and (args.task_episodes is not None or args.history_from is not None or args.up_first):
-        parser.error("--task-episodes, --history-from and --up-first shape D_body: add --env BODY, or drop them")
+    if not args.env and (args.task_episodes is not None or args.history_from is not None):
+        parser.error("--task-episodes and --history-from shape D_body: add --env BODY, or drop them")
     if not (args.env or args.demos or args.features):
         parser.error("nothing to do: pass --env BODY, --demos or --features")
     if args.env:

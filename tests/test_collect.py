@@ -180,18 +180,3 @@ def test_the_cpu_preset_collects_160_task_episodes_per_task_for_both_bodies(tmp_
         assert all([j["kind"] for j in jobs].count(task) == 160 for task in envs.BODY_TASKS)
         assert len({tuple(j["seed"]) for j in jobs}) == 560
     assert collect.preset_config("smoke") == SMOKE
-
-
-def test_up_first_episodes_begin_with_the_final_expert_until_the_body_is_up():
-    """--up-first: the final expert acts (the same noise draws) until the body is up, then the snapshot does."""
-    job = dict(kind="stand", body="stickman", task="stand", index=0, snapshot=None, steps=250, noise=0.3, seed=[0, 1, 5],
-               views=("side",))
-    final = collect.simulate(job)[0]
-    early = experts.history_steps("stickman", "stand")[0]  # 50k steps: does not get up (docs/results.md, Datasets)
-    up_first = collect.simulate(dict(job, snapshot=early, up_first=True))[0]
-    switch = int(str(up_first["source"]).rsplit("first ", 1)[1].split()[0])
-    assert 0 < switch < collect.UP_MAX
-    assert np.array_equal(final["action"][: switch + 1], up_first["action"][: switch + 1])
-    assert not np.array_equal(final["action"][switch + 1:], up_first["action"][switch + 1:])
-    posture = envs.observed_posture("stickman", up_first["state"])
-    assert (posture[switch - collect.UP_HOLD + 1: switch + 1] >= collect.UP).all()

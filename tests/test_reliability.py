@@ -452,7 +452,7 @@ def test_a_missing_checkpoint_names_the_command_for_its_body_and_preset(tmp_path
     ("tables.py", ["--curves", "rows.jsonl", "--budgets", "genrl=1000"], "--budgets does nothing with --curves: drop it"),
     ("imitate.py", ["--demo", "stickman_run", "--seeds", "3"], "--seeds sets GIIL-FT: add --finetune, or drop it"),
     ("train.py", ["--evaluate", "--resume"], "--resume is for training: it does nothing with --export or --evaluate"),
-    ("collect.py", ["--features", "--data", "no_data", "--up-first"], "--task-episodes, --history-from and --up-first shape D_body: add --env BODY"),
+    ("collect.py", ["--features", "--data", "no_data", "--history-from", "0.5"], "--task-episodes and --history-from shape D_body: add --env BODY"),
     ("experts.py", ["--history"], "--history works with --eval only"),
 ])
 def test_flags_act_by_their_whole_name_and_only_where_they_act(script, argv, message, monkeypatch, capsys):

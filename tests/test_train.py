@@ -94,7 +94,7 @@ def test_a_smaller_older_d_body_grows_to_the_preset_before_training(smoke_data, 
     shutil.copytree(smoke_data, root)
     folder = os.path.join(root, "walker")
     complete = os.path.join(folder, collect.COMPLETE)
-    older = {k: v for k, v in json.load(open(complete)).items() if k != "up_first"}  # written before up_first existed
+    older = {k: v for k, v in json.load(open(complete)).items() if k != "history_from"}  # written before history_from existed
     open(complete, "w").write(json.dumps(older))
     before = {n: os.path.getmtime(os.path.join(folder, n)) for n in os.listdir(folder) if n.endswith(".npz")}
     monkeypatch.setitem(presets.PRESETS["collect"], "smoke", {**presets.PRESETS["collect"]["smoke"], "task_episodes": 2})
