@@ -88,7 +88,7 @@ def stored_configs(ckpt, path):
         for field, value in fields.items():
             if field not in known and REMOVED.get(name, {}).get(field, object()) != value:
                 raise ValueError(f"{path} was trained with --{prefix}{field.replace('_', '-')} {value}, a variant measured worse and deleted "
-                                 f"(docs/ablations.md): load it with the code of commit 5fb4022")
+                                 f"(docs/ablations.md names the commit that had it): load it with that commit's code")
         cfgs[name] = cls(**{k: v for k, v in fields.items() if k in known})
     return cfgs
 

@@ -363,8 +363,7 @@ def load_checkpoint(path, device="cpu"):
         return torch.load(path, map_location=device, weights_only=True)
     except pickle.UnpicklingError:
         raise ValueError(f"{path} holds pickled Python objects (the format before checkpoints became weights-only), which are not "
-                         f"loaded: train it again, or convert a file you trust with `python train.py --upgrade-checkpoint {path}` "
-                         f"of commit 5fb4022") from None
+                         f"loaded: train it again") from None
     except (RuntimeError, EOFError, OSError) as error:
         raise ValueError(f"{path}: not a readable checkpoint ({str(error).splitlines()[0]}); delete it or restore it from a copy") from None
 

@@ -229,7 +229,7 @@ def test_polish_clones_on_the_final_models_and_leaves_training_untouched(smoke_d
 
 def test_a_stored_config_with_a_deleted_switch_loads_at_its_off_value_and_is_refused_on(smoke_run, tmp_path):
     """The shipped agents store fields of switches since deleted (checkpoint.REMOVED): at their off value they are
-    dropped and the run loads and resumes as before; switched on, a one-line error names the flag and the commit."""
+    dropped and the run loads and resumes as before; switched on, a one-line error names the flag and where its commit is."""
     ckpt = torch.load(os.path.join(smoke_run, "checkpoint.pt"), weights_only=True)
     off = dict(ckpt["config"], train={**ckpt["config"]["train"], "act_temperature": 0.0, "cover_edges": 0},
                ac={**ckpt["config"]["ac"], "reward": "distance", "mixture": 1, "bc_polish_fresh": 0, "uncertainty": 0.0})
@@ -237,7 +237,7 @@ def test_a_stored_config_with_a_deleted_switch_loads_at_its_off_value_and_is_ref
     cfgs, models, _ = checkpoint.load_run(str(tmp_path))
     assert cfgs == checkpoint.load_run(smoke_run)[0]
     torch.save(dict(ckpt, config=dict(off, ac={**off["ac"], "mixture": 3})), tmp_path / "checkpoint.pt")
-    with pytest.raises(ValueError, match=r"trained with --ac-mixture 3, a variant measured worse and deleted .*commit 5fb4022"):
+    with pytest.raises(ValueError, match=r"trained with --ac-mixture 3, a variant measured worse and deleted \(docs/ablations.md names the commit that had it\)"):
         checkpoint.load_run(str(tmp_path))
     pixels = train.resolve_configs(train_args(**{"wm.obs": "pixels"}), "smoke")  # the cpu recipe's d reads decoded state vectors
     with pytest.raises(ValueError, match="--dist-input obs reads decoded state vectors: with --obs pixels pass --dist-input feat"):
