@@ -30,7 +30,7 @@ from video_encoder import load_encoder
 class TrainConfig:
     env: str = "walker"  # the agent's body
     preset: str = "cpu"  # smoke | cpu | paper: sizes of every component and of D_body
-    seed: int = 0
+    seed: int = 0  # the training seed: torch's and the batches' draws
     steps: int = 3000  # updates (ours: a CPU budget, docs/results.md; Dreamer-scale runs use ~1e5 and more)
     # updates of the world model and goal VAE alone (Eq. 2, 3) before the `steps` of phase 1 (ours: a world-model stage, as
     # V-D4RL's offline DreamerV2 and GenRL pretrain their world models before any behaviour learning)
@@ -40,8 +40,8 @@ class TrainConfig:
     eval_episodes: int = 3  # goal-reaching benchmark (evaluate.py, ours): episodes per own-body demo goal
     eval_steps: int = 500  # agent steps per goal-reaching episode (a whole episode)
     eval_seed: int = 30_000  # the benchmark's first environment seed; another gives fresh start poses, to confirm a choice made on it
-    log_every: int = 100
-    checkpoint_every: int = 250
+    log_every: int = 100  # updates between rows of metrics.jsonl
+    checkpoint_every: int = 250  # updates between checkpoints (--resume goes on from the last)
     fidelity_every: int = 0  # updates between rows of the world model's fidelity benchmark (fidelity.py) in fidelity.jsonl; 0: none
     data: str = "data"  # the datasets' folder (presets.DATA)
     encoder: str = "default"  # video encoder of the features p_t (video_encoder.py)

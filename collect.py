@@ -59,7 +59,7 @@ class CollectConfig:
     # task episodes come from the snapshots at or after this fraction of each expert's last history step (ours; 0 = the whole
     # history, kept: the later half alone did not raise the stickman's goal reaching, docs/ablations.md, Phase 1)
     history_from: float = 0.0
-    seed: int = 0
+    seed: int = 0  # the collection's seed: every episode's own seed is derived from it and the episode's name
 
 
 def preset_config(preset):

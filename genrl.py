@@ -322,13 +322,6 @@ def report(cell, method, config, ran):
           f"rows in {os.path.join(cell['run_dir'], 'results.jsonl')}")
 
 
-def add_config_flags(parser, cls, presets):
-    """One flag per config field (default None: 'not given', so the preset applies)."""
-    for field in dataclasses.fields(cls):
-        parser.add_argument("--" + field.name.replace("_", "-"), type=type(field.default), default=None,
-                            choices=tuple(presets) if field.name == "preset" else None, help=f"default {field.default!r}, or the preset's")
-
-
 def config_from_args(cls, presets, args):
     """dataclass defaults < the preset's overrides < explicit flags."""
     given = {f.name: getattr(args, f.name) for f in dataclasses.fields(cls) if getattr(args, f.name) is not None}
@@ -345,7 +338,7 @@ def cell_parser(description, cls, presets):
     parser.add_argument("--run", default=checkpoint.default_run_dir("walker", "cpu"), help="the phase-1 run (train.py) whose world model is used")
     parser.add_argument("--data", default=None, help="data folder with demos/ and D_body (default: the run's)")
     rundir.threads_flag(parser)
-    add_config_flags(parser, cls, presets)
+    rundir.config_flags(parser, cls, choices={"preset": tuple(presets)})
     return parser
 
 

@@ -51,14 +51,14 @@ from video_encoder import check_same_encoder, load_encoder
 
 @dataclasses.dataclass
 class ImitateConfig:
-    preset: str = "cpu"
+    preset: str = "cpu"  # smoke | cpu | paper: presets.py
     steps: int = 300  # goal-finetuning updates (ours, a CPU budget)
     starts: int = 64  # imagined trajectories per L_GI update (ours)
     goal_lr: float = 3e-4  # Adam on g (ours; chosen on same-body cells, docs/ablations.md)
     critic_lr: float = 8e-5  # V_ot, as the phase-1 critic (Dreamer V1)
     seeds: int = 5  # GIIL-FT seeds (the paper: 3; 5 so that FT vs ZS(demo 0) is measured beyond the noise)
     eval_episodes: int = 3  # episodes per GIIL-ZS goal and per goal search's seed
-    eval_steps: int = envs.EPISODE_STEPS
+    eval_steps: int = envs.EPISODE_STEPS  # agent steps per evaluation episode
     video: int = 1  # write demo | agent side-by-side videos
 
 
@@ -258,9 +258,7 @@ def imitate(run_dir, demo, view, ic, searches=(), oc=None, zero_shot=True, done=
 
 def config_flags(parser):
     """--<field> of every ImitateConfig field (the preset's value unless given); parse_config reads them back."""
-    for field in dataclasses.fields(ImitateConfig):
-        parser.add_argument("--" + field.name.replace("_", "-"), type=type(field.default), default=None,
-                            choices=CHOICES.get(field.name), help=f"default {field.default!r}, or the preset's")
+    rundir.config_flags(parser, ImitateConfig, choices=CHOICES)
 
 
 def parse_config(args):

@@ -21,6 +21,8 @@ import contextlib
 import dataclasses
 import fcntl
 import glob
+import inspect
+import io
 import json
 import math
 import os
@@ -28,6 +30,7 @@ import pickle
 import re
 import signal
 import sys
+import tokenize
 
 import numpy as np
 import torch
@@ -235,6 +238,37 @@ def fast_matmul():
     if error > 1e-5:  # fp32 gives ~1e-6 here, bf16 ~1e-3
         matmul.fp32_precision = "none"
     return error <= 1e-5
+
+
+def field_comments(cls):
+    """{field: its comment in the source} of a dataclass: the comment lines right above the field and the one after it,
+    which say what the field is and where its value comes from (the paper, Dreamer, GenRL, ours)."""
+    lines = inspect.getsource(cls).splitlines()
+    comments = {tok.start[0]: (tok.start[1], tok.string.lstrip("#").strip())
+                for tok in tokenize.generate_tokens(io.StringIO("\n".join(lines) + "\n").readline) if tok.type == tokenize.COMMENT}
+    names, out, above = {f.name for f in dataclasses.fields(cls)}, {}, []
+    for number, line in enumerate(lines, 1):
+        indent = len(line) - len(line.lstrip())
+        if number in comments and comments[number][0] == indent:  # a comment line of its own: about the field below
+            above.append(comments[number][1])
+            continue
+        name = re.match(r"\s+(\w+)\s*:", line)
+        if name and name.group(1) in names:
+            out[name.group(1)] = " ".join(above + ([comments[number][1]] if number in comments else []))
+        above = []
+    return out
+
+
+def config_flags(parser, cls, prefix="", dest="", choices=None):
+    """One flag --<prefix><field> per field of the dataclass cls, stored as <dest><field>, default None ('not given': the
+    preset's value applies); its help is the field's source comment. choices: {field: the values allowed}."""
+    comments, choices = field_comments(cls), choices or {}
+    for field in dataclasses.fields(cls):
+        kind = type(field.default)
+        parser.add_argument("--" + prefix + field.name.replace("_", "-"), dest=dest + field.name, type=kind, default=None,
+                            choices=choices.get(field.name), metavar=None if field.name in choices else kind.__name__.upper(),
+                            help=f"{comments.get(field.name) or cls.__name__ + '.' + field.name} (default {field.default!r}, or the "
+                                 f"preset's)".replace("%", "%%"))
 
 
 def threads_flag(parser):

@@ -46,13 +46,9 @@ LR_FLAGS = {"world_model": ("wm", "lr"), "goal_vae": ("goal", "lr"), "dist_net":
 
 
 def add_config_flags(parser):
-    """One flag per field of each component's config (default None: 'not given', so presets apply)."""
+    """One flag per field of each component's config (rundir.config_flags: its help the field's comment)."""
     for name, (cls, prefix) in COMPONENTS.items():
-        for field in dataclasses.fields(cls):
-            choices = tuple(PRESETS["train"]) if (name, field.name) == ("train", "preset") else None
-            parser.add_argument("--" + prefix + field.name.replace("_", "-"), dest=f"{name}.{field.name}", type=type(field.default),
-                                default=None, choices=choices, metavar=None if choices else type(field.default).__name__.upper(),
-                                help=f"{cls.__name__}.{field.name} (default {field.default!r}, or the preset's)")
+        rundir.config_flags(parser, cls, prefix, f"{name}.", {"preset": tuple(PRESETS["train"])} if name == "train" else None)
 
 
 def resolve_configs(args, preset):
