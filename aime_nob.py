@@ -53,6 +53,8 @@ METHOD = "AIME-NoB"
 
 @dataclasses.dataclass
 class AIMENoBConfig:
+    # rundir.check_flags: the values a field may take where not a count (>= 1), a learning rate in (0, 1) or a float >= 0
+    ranges: ClassVar[dict] = {"body_ratio": (0, 1), "reward_sum": "> 0"}
     preset: str = "cpu"  # smoke | cpu: the overrides in presets.PRESETS["aime_nob"], and the OT solver's preset of the same name
     env_steps: int = 5000  # interaction budget per seed in agent steps: 10 episodes (ours, cpu time; AIME-NoB interacts far longer)
     episode_steps: int = envs.EPISODE_STEPS  # agent steps per collected episode (a whole episode)

@@ -13,6 +13,7 @@ import fcntl
 import hashlib
 import json
 import os
+from typing import ClassVar
 
 
 import collect
@@ -28,6 +29,8 @@ from video_encoder import load_encoder
 
 @dataclasses.dataclass
 class TrainConfig:
+    # rundir.check_flags: the values a field may take where not a count (>= 1), a learning rate in (0, 1) or a float >= 0
+    ranges: ClassVar[dict] = {"seed": (0, None), "policy_start": (0, None), "wm_steps": (0, None), "fidelity_every": (0, None), "holdout_every": (2, None)}
     env: str = "walker"  # the agent's body
     preset: str = "cpu"  # smoke | cpu | paper: sizes of every component and of D_body
     seed: int = 0  # the training seed: torch's and the batches' draws

@@ -30,6 +30,7 @@ import os
 import signal
 import zipfile
 from dataclasses import asdict, dataclass, replace
+from typing import ClassVar
 
 import numpy as np
 import torch
@@ -49,6 +50,8 @@ COMPLETE = "collection.json"  # written into data/<body>/ once all of D_body is 
 
 @dataclass
 class CollectConfig:
+    # rundir.check_flags: the values a field may take where not a count (>= 1), a learning rate in (0, 1) or a float >= 0
+    ranges: ClassVar[dict] = {"seed": (0, None)}
     explore_episodes: int = 80  # D_body exploration episodes (ours; the paper: ~2000)
     # D_body episodes per task in envs.BODY_TASKS (ours: each doubling from 40 raised goal reaching, docs/ablations.md,
     # Phase 1; the paper: 1000, which makes exploration : task episodes 2 : 3 there, 1 : 6 here)

@@ -35,6 +35,7 @@ observation (symlog of the state vector) of s and of g, which holds the body's p
 Measured, it ranked gaps no better than [h, z] (docs/ablations.md, Phase 1). `input = "feat"` is Eq. 7 as written.
 """
 from dataclasses import dataclass
+from typing import ClassVar
 
 import torch
 import torch.nn as nn
@@ -44,6 +45,8 @@ from world_model import mlp
 
 @dataclass
 class DistanceConfig:
+    # rundir.check_flags: the values a field may take where not a count (>= 1), a learning rate in (0, 1) or a float >= 0
+    ranges: ClassVar[dict] = {"encoder_goals": (0, 1), "grad_clip": "> 0"}
     units: int = 128  # LEXA: 4 x 128 MLP
     layers: int = 4  # LEXA
     pairs: int = 1024  # candidate pairs of each kind (same / different trajectory) per batch (ours)

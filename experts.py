@@ -24,6 +24,7 @@ import math
 import os
 import time
 from dataclasses import asdict, dataclass
+from typing import ClassVar
 
 import numpy as np
 import torch
@@ -38,6 +39,8 @@ EXPERT_DIR = os.path.join(os.path.dirname(os.path.abspath(__file__)), "experts")
 
 @dataclass
 class ExpertConfig:
+    # rundir.check_flags: the values a field may take where not a count (>= 1), a learning rate in (0, 1) or a float >= 0
+    ranges: ClassVar[dict] = {"seed": (0, None), "seed_steps": (0, None), "gamma": (0, 1), "tau": (0, 1), "init_alpha": "> 0"}
     steps: int = 500_000  # agent steps per task (action repeat 2); run needs ~0.5M, stand far fewer
     seed_steps: int = 5_000  # uniform random actions before the first update (Yarats & Kostrikov pytorch_sac)
     batch: int = 256  # SAC paper

@@ -17,6 +17,7 @@ The video features are unit vectors compared by cosine (App. C's OT cost), so th
 """
 import math
 from dataclasses import dataclass
+from typing import ClassVar
 
 import torch
 import torch.nn as nn
@@ -27,6 +28,8 @@ from world_model import mlp
 
 @dataclass
 class GoalVAEConfig:
+    # rundir.check_flags: the values a field may take where not a count (>= 1), a learning rate in (0, 1) or a float >= 0
+    ranges: ClassVar[dict] = {"grad_clip": "> 0", "min_std": "> 0", "kappa": "> 0"}
     units: int = 256  # MLP width, the world model's (ours; Dreamer V1's MLP size: 400)
     layers: int = 2  # hidden layers of the encoder and of the decoder (ours)
     min_std: float = 0.1  # std = softplus(x) + 0.1, as the world model (Dreamer V1)

@@ -31,7 +31,7 @@ import dataclasses
 import json
 import os
 import time
-from typing import Callable
+from typing import Callable, ClassVar
 
 import numpy as np
 import torch
@@ -51,6 +51,8 @@ from video_encoder import check_same_encoder, load_encoder
 
 @dataclasses.dataclass
 class ImitateConfig:
+    # rundir.check_flags: the values a field may take where not a count (>= 1), a learning rate in (0, 1) or a float >= 0
+    ranges: ClassVar[dict] = {"video": (0, 1)}
     preset: str = "cpu"  # smoke | cpu | paper: presets.py
     steps: int = 300  # goal-finetuning updates (ours, a CPU budget)
     starts: int = 64  # imagined trajectories per L_GI update (ours)

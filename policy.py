@@ -20,6 +20,7 @@ import contextlib
 import copy
 import math
 from dataclasses import dataclass
+from typing import ClassVar
 
 import torch
 import torch.nn as nn
@@ -33,6 +34,10 @@ DIVERGED = 1e10  # |loss| above this is divergence (ours: the smoke preset's los
 
 @dataclass
 class ActorCriticConfig:
+    # rundir.check_flags: the values a field may take where not a count (>= 1), a learning rate in (0, 1) or a float >= 0
+    ranges: ClassVar[dict] = {"goal_near": (0, 1), "bc_final": (0, 1), "bc_polish": (0, None), "gamma": (0, 1), "lambda_": (0, 1), "goal_mix": (0, 1),
+                              "slow_critic_rate": (0, 1), "return_norm_decay": (0, 1), "grad_clip": "> 0", "min_std": "> 0", "max_std": "> 0",
+                              "mean_scale": "> 0"}
     units: int = 256  # MLP width (ours, a CPU budget; Dreamer V1: 400)
     actor_layers: int = 2  # (ours, a CPU budget; Dreamer V1: 4)
     critic_layers: int = 2  # (ours, a CPU budget; Dreamer V1: 3)

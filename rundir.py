@@ -39,30 +39,21 @@ import envs
 from presets import DATA
 
 
-# Ranges of the numeric flags that are not counts or sizes (those are >= 1): (low, high), None = no bound. Learning
-# rates lie in (0, 1), the fields of POSITIVE above 0, any other float is >= 0.
-RANGES = {"seed": (0, None), "seed_steps": (0, None), "policy_start": (0, None), "wm_steps": (0, None), "fidelity_every": (0, None),
-          "overshoot": (0, None),
-          "holdout_every": (2, None),  # 1 would hold out every episode
-          "discrete": (0, None), "unimix": (0, 1),  # discrete 0: a Gaussian z (world_model.make_latent)
-          "video": (0, 1), "encoder_goals": (0, 1), "body_ratio": (0, 1),
-          "goal_near": (0, 1), "bc_final": (0, 1), "bc_polish": (0, None),
-          "gamma": (0, 1), "lambda_": (0, 1), "tau": (0, 1), "goal_mix": (0, 1), "slow_critic_rate": (0, 1), "return_norm_decay": (0, 1)}
-POSITIVE = ("grad_clip", "min_std", "max_std", "mean_scale", "kappa", "init_alpha", "reward_sum")
-
-
 def check_flags(config, prefix=""):
-    """One-line ValueError naming the flag (--<prefix><field>) of a numeric field of the dataclass `config` out of range."""
+    """One-line ValueError naming the flag (--<prefix><field>) of a numeric field of the dataclass `config` out of range:
+    its class's `ranges` ((low, high) inclusive, None unbounded, or "> 0"), else a learning rate (a field ending in lr)
+    in (0, 1), a count (an int) >= 1, any other float >= 0."""
+    ranges = getattr(type(config), "ranges", {})
     for field in dataclasses.fields(config):
         name, value = field.name, getattr(config, field.name)
         if isinstance(value, bool) or not isinstance(value, (int, float)):
             continue
-        if name.endswith("lr"):
-            ok, want = 0 < value < 1, "a learning rate in (0, 1)"
-        elif name in POSITIVE:
+        if name in ranges and ranges[name] == "> 0":
             ok, want = 0 < value < math.inf, "> 0"
+        elif name.endswith("lr"):
+            ok, want = 0 < value < 1, "a learning rate in (0, 1)"
         else:
-            low, high = RANGES.get(name, (1 if isinstance(value, int) else 0, None))
+            low, high = ranges.get(name, (1 if isinstance(value, int) else 0, None))
             ok = math.isfinite(value) and low <= value <= (math.inf if high is None else high)
             want = f">= {low}" if high is None else f"in [{low}, {high}]"
         if not ok:

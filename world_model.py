@@ -26,6 +26,7 @@ Imagination (imagine, policy.py) keeps the convention, with k counting imagined 
 """
 import math
 from dataclasses import dataclass
+from typing import ClassVar
 
 import torch
 import torch.nn as nn
@@ -34,6 +35,8 @@ import torch.nn.functional as F
 
 @dataclass
 class WorldModelConfig:
+    # rundir.check_flags: the values a field may take where not a count (>= 1), a learning rate in (0, 1) or a float >= 0
+    ranges: ClassVar[dict] = {"overshoot": (0, None), "discrete": (0, None), "unimix": (0, 1), "grad_clip": "> 0", "min_std": "> 0"}
     obs: str = "state"  # 'state': proprioception (ours, a CPU budget; deviation) or 'pixels': 64x64x3 (the paper)
     deter: int = 200  # GRU state h_t, Dreamer V1
     stoch: int = 30  # z_t: Gaussian units (Dreamer V1), or categorical variables when discrete > 0 (DreamerV2; GenRL: 32)
