@@ -10,7 +10,6 @@ each other:
 """
 import dataclasses
 import fcntl
-import hashlib
 import json
 import os
 from typing import ClassVar
@@ -105,17 +104,6 @@ def load_run(run_dir, device="cpu", env=None):
     for name, model in models.items():
         model.load_state_dict(ckpt["models"][name])
     return cfgs, models, ckpt
-
-
-def weights_id(ckpt):
-    """The identity of a checkpoint's agent, '<update>:<hash of every weight>': every result row carries it, so that a
-    retrained or replaced agent is evaluated again, never credited with another agent's rows."""
-    digest = hashlib.sha256()
-    for name in sorted(ckpt["models"]):
-        for key, tensor in sorted(ckpt["models"][name].items()):
-            digest.update(f"{name}.{key}".encode())
-            digest.update(tensor.detach().cpu().contiguous().numpy().tobytes())
-    return f"{ckpt['step']}:{digest.hexdigest()[:16]}"
 
 
 def default_run_dir(env, preset, seed=0, obs=None):

@@ -25,7 +25,6 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-import checkpoint
 import collect
 import envs
 import policy
@@ -199,7 +198,7 @@ BENCHMARK = ("eval_episodes", "eval_steps", "eval_seed")  # the TrainConfig fiel
 
 
 def write_goal_reaching(run_dir, scores, tc, weights):
-    """runs/<name>/goal_reaching.json: the scores, with the agent that made them (body, preset, checkpoint.weights_id)
+    """runs/<name>/goal_reaching.json: the scores, with the agent that made them (body, preset, rundir.weights_id)
     and the benchmark's settings."""
     record = {"agent": tc.env, "preset": tc.preset, "weights": weights, "settings": {k: getattr(tc, k) for k in BENCHMARK}, "scores": scores}
     path = os.path.join(run_dir, "goal_reaching.json")
@@ -215,7 +214,7 @@ def read_goal_reaching(run_dir):
     record = json.load(open(path))
     if "weights" not in record:
         raise ValueError(f"{path} was written before results named their agent: {again} again")
-    now = checkpoint.weights_id(rundir.run_checkpoint(run_dir))
+    now = rundir.weights_id(rundir.run_checkpoint(run_dir))
     if record["weights"] != now:
         raise ValueError(f"{path} scores the agent {record['weights']}, but {run_dir} now holds {now} (trained since): {again} again")
     return record

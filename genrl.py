@@ -206,7 +206,7 @@ def load_cell(run_dir, demo, view, data=None):
     envs._check_name("task", task, envs.TASKS)
     return {"run_dir": run_dir, "cfgs": cfgs, "models": models, "ckpt": ckpt, "device": device, "demo": demo, "view": view,
             "demos": demos, "demo_returns": [round(d["return"], 3) for d in demos], "task": task,
-            "setting": envs.setting(tc.env, demo_body, view), "weights": checkpoint.weights_id(ckpt)}
+            "setting": envs.setting(tc.env, demo_body, view), "weights": rundir.weights_id(ckpt)}
 
 
 def evaluate_actor(cell, world_model, actor, episodes, steps, seed):

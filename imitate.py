@@ -191,7 +191,7 @@ def done_here(rows, demo, view, returns, ic, oc, weights):
 def imitate(run_dir, demo, view, ic, searches=(), oc=None, zero_shot=True, done=None):
     """For one demo folder: GIIL-ZS on every demo (unless not zero_shot), then each goal search named (SEARCHES' keys)
     for its seeds, each seed beside GIIL-ZS (demo 0) on the same evaluation seeds. Appends each evaluation to
-    runs/<name>/results.jsonl, each row with the agent's weights (checkpoint.weights_id), and returns the rows. done:
+    runs/<name>/results.jsonl, each row with the agent's weights (weights_id), and returns the rows. done:
     (method, seed) pairs not run again (tables.py); None: those results.jsonl has for these demos, settings and weights
     (a rerun after Ctrl-C goes on, appending no duplicates; a retrained agent runs again)."""
     rundir.check_flags(ic)
@@ -199,7 +199,7 @@ def imitate(run_dir, demo, view, ic, searches=(), oc=None, zero_shot=True, done=
     device = "cuda" if torch.cuda.is_available() else "cpu"
     rundir.not_training(run_dir)
     cfgs, models, ckpt = checkpoint.load_run(run_dir, device)
-    tc, weights = cfgs["train"], checkpoint.weights_id(ckpt)
+    tc, weights = cfgs["train"], rundir.weights_id(ckpt)
     rundir.fast_matmul()  # oneDNN where it is faster and still fp32 (rundir.py)
     folder = checkpoint.demo_folder(cfgs, demo, view)
     demo_body, task = demo.rsplit("_", 1)

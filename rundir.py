@@ -16,11 +16,13 @@ threads_flag  --threads of imitate.py, genrl.py and aime_nob.py: this process's 
 export_agent  a trained run as a shipped agent, agents/<body>/checkpoint.pt: weights only (train.py --export)
 atomic_write  every file the project writes, videos too: a temporary file per writer, renamed onto the path (never half a file)
 load_checkpoint, plain, generator   checkpoints that load with torch.load(weights_only=True), and only so
+weights_id    the identity of a checkpoint's agent, which every result row carries
 """
 import contextlib
 import dataclasses
 import fcntl
 import glob
+import hashlib
 import inspect
 import io
 import json
@@ -164,7 +166,7 @@ def latest(rows_in):
 
 
 def finished(rows, demo, view, returns, configs, weights):
-    """A cell's rows that count: made by the agent `weights` (checkpoint.weights_id) with the demos now on disk (their
+    """A cell's rows that count: made by the agent `weights` (weights_id) with the demos now on disk (their
     returns) and, for a method of `configs`, with the settings configs[method] (imitate.result_config)."""
     return [r for r in rows if r["demo"] == demo and r["view"] == view and r.get("demo_returns") == returns
             and r.get("weights") == weights and r["method"] in configs and r.get("config") == configs[r["method"]]]
@@ -378,6 +380,17 @@ def atomic_write(path, write, by_name=False):
         if pid.isdigit() and not alive(int(pid)):
             with contextlib.suppress(FileNotFoundError):
                 os.remove(left)
+
+
+def weights_id(ckpt):
+    """The identity of a checkpoint's agent, '<update>:<hash of every weight>': every result row carries it, so that a
+    retrained or replaced agent is evaluated again, never credited with another agent's rows."""
+    digest = hashlib.sha256()
+    for name in sorted(ckpt["models"]):
+        for key, tensor in sorted(ckpt["models"][name].items()):
+            digest.update(f"{name}.{key}".encode())
+            digest.update(tensor.detach().cpu().contiguous().numpy().tobytes())
+    return f"{ckpt['step']}:{digest.hexdigest()[:16]}"
 
 
 def load_checkpoint(path, device="cpu"):

@@ -224,7 +224,7 @@ def run_table(run_dir, ic, oc=None, settings=SETTINGS, shard=(0, 1), methods=("f
     baselines = baseline_configs(ic.preset, budgets)  # their finished cells are shown whichever methods run now
     rundir.not_training(run_dir)
     cfgs, _, ckpt = checkpoint.load_run(run_dir)
-    agent, shown, weights = cfgs["train"].env, [], checkpoint.weights_id(ckpt)
+    agent, shown, weights = cfgs["train"].env, [], rundir.weights_id(ckpt)
     configs = {**{m: imitate.result_config(ic, m, oc) for m in imitate.METHODS}, **{m: b[2] for m, b in baselines.items()}}
     searches = [m for m, s in imitate.SEARCHES.items() if s.flag in methods]
     # the shards split the cells of `settings`, so that none is left idle; a cell left out runs nothing, its finished rows still count

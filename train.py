@@ -81,7 +81,7 @@ def report_goal_reaching(run_dir, models, cfgs, device):
     print(f"goal reaching, {tc.env}: own side-view demos as goals (g = q(s | p_T)), {tc.eval_episodes} episodes per demo, "
           f"{tc.eval_steps} steps, normalised score (Eq. 8) mean +- s.e.")
     print("\n".join(evaluate.summary(scores)))
-    weights = checkpoint.weights_id(rundir.load_checkpoint(os.path.join(run_dir, "checkpoint.pt")))  # the agent scored, as saved
+    weights = rundir.weights_id(rundir.load_checkpoint(os.path.join(run_dir, "checkpoint.pt")))  # the agent scored, as saved
     print("wrote", evaluate.write_goal_reaching(run_dir, scores, tc, weights))
     return scores
 

@@ -8,6 +8,7 @@ import pytest
 import checkpoint
 import evaluate
 import presets
+import rundir
 from conftest import probe_script
 
 
@@ -17,7 +18,7 @@ def test_summary_and_across_runs_by_hand(smoke_run, tmp_path):
     import torch
 
     runs, tc = [], checkpoint.load_run(smoke_run)[0]["train"]
-    weights = checkpoint.weights_id(torch.load(os.path.join(smoke_run, "checkpoint.pt"), weights_only=True))
+    weights = rundir.weights_id(torch.load(os.path.join(smoke_run, "checkpoint.pt"), weights_only=True))
     for k, (stand, walk, run) in enumerate([([10, 20], [50, 70], [0, 10]), ([30, 30], [40, 40], [20, 20])]):
         folder = tmp_path / f"r{k}"
         folder.mkdir()
@@ -50,7 +51,7 @@ def test_across_runs_refuses_what_is_not_one_comparison(smoke_run, tmp_path):
         shutil.copytree(smoke_run, run)
     with pytest.raises(ValueError, match=r"/a and .*/b/\.\./a are the same run: pass each training seed once"):
         evaluate.across_runs([a, os.path.join(b, "..", "a")])
-    weights = checkpoint.weights_id(torch.load(os.path.join(b, "checkpoint.pt"), weights_only=True))
+    weights = rundir.weights_id(torch.load(os.path.join(b, "checkpoint.pt"), weights_only=True))
     evaluate.write_goal_reaching(b, json.load(open(os.path.join(b, "goal_reaching.json")))["scores"], dataclasses.replace(tc, eval_steps=2), weights)
     with pytest.raises(ValueError, match=r"differ in settings .*'eval_steps': 10.* against .*'eval_steps': 2"):
         evaluate.across_runs([a, b])

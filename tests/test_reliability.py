@@ -574,18 +574,18 @@ def test_a_video_cut_off_half_way_leaves_the_old_file(tmp_path, monkeypatch):
 # --- 9. a result names the agent that made it (issue 83): a changed agent is evaluated again, never credited ---
 
 def test_rows_of_other_weights_are_not_credited_to_the_agent(smoke_run, tmp_path):
-    """imitate's rows carry checkpoint.weights_id; after the weights change the same command runs again, and the
+    """imitate's rows carry rundir.weights_id; after the weights change the same command runs again, and the
     tables count the new agent's rows only."""
     run = copy_run(smoke_run, tmp_path)
     first = imitate.imitate(run, "walker_run", "side", SMOKE_IMITATE)
     path = os.path.join(run, "checkpoint.pt")
     ckpt = torch.load(path, weights_only=True)
-    assert {r["weights"] for r in first} == {checkpoint.weights_id(ckpt)} and first[0]["weights"].startswith("6:")
+    assert {r["weights"] for r in first} == {rundir.weights_id(ckpt)} and first[0]["weights"].startswith("6:")
     assert imitate.imitate(run, "walker_run", "side", SMOKE_IMITATE) == []  # the same agent: nothing runs again
     ckpt["models"]["actor"] = {k: v + 1e-3 for k, v in ckpt["models"]["actor"].items()}  # as a resumed training would
     torch.save(ckpt, path)
     second = imitate.imitate(run, "walker_run", "side", SMOKE_IMITATE)
-    assert len(second) == len(first) and {r["weights"] for r in second} == {checkpoint.weights_id(ckpt)} != {first[0]["weights"]}
+    assert len(second) == len(first) and {r["weights"] for r in second} == {rundir.weights_id(ckpt)} != {first[0]["weights"]}
 
 
 def test_a_baseline_never_resumes_a_state_of_other_weights(smoke_run, tmp_path):

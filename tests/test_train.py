@@ -28,7 +28,7 @@ def test_smoke_run_writes_checkpoint_metrics_and_goal_reaching(smoke_run):
     record = json.load(open(os.path.join(smoke_run, "goal_reaching.json")))
     scores = record["scores"]
     assert list(scores) == ["stand", "walk", "run", "jump"] and record["agent"] == "walker" and record["preset"] == "smoke"
-    assert record["weights"] == checkpoint.weights_id(torch.load(os.path.join(smoke_run, "checkpoint.pt"), weights_only=True))
+    assert record["weights"] == rundir.weights_id(torch.load(os.path.join(smoke_run, "checkpoint.pt"), weights_only=True))
     assert record["settings"] == {"eval_episodes": 1, "eval_steps": 10, "eval_seed": checkpoint.TrainConfig.eval_seed}
     assert all(len(s["policy"]) == len(s["random"]) == 2 for s in scores.values())  # smoke: 2 demos x 1 episode
     assert os.path.getsize(os.path.join(smoke_run, "learning_curve.png")) > 1000
