@@ -7,9 +7,7 @@ import pytest
 
 import checkpoint
 import evaluate
-import presets
 import rundir
-from conftest import probe_script
 
 
 def test_summary_and_across_runs_by_hand(smoke_run, tmp_path):
@@ -149,97 +147,3 @@ def test_gradient_share_across_runs_by_hand(tmp_path):
     assert table[0].startswith("| actor's gradient norm, last 2 rows, 2 runs |")
     assert table[2] == "| mean +- s.e. | 0.200 +- 0.000 | 2.500 +- 0.500 | 12.5 +- 2.5 |"
     assert evaluate.gradient_share(runs[2:]) == []
-
-
-def test_getting_up_row_classes_episodes_by_their_last_steps():
-    """probes/getting_up.py: an episode is up when its mean posture over the last 100 steps is >= 0.8, whatever came before."""
-    getting_up = probe_script("getting_up")
-    posture = np.zeros((500, 3))
-    posture[-100:, 0] = 0.85  # up only at the end
-    posture[:400, 1] = 1.0  # up, then fell for the last 100 steps
-    posture[-100:, 2] = [0.9] * 50 + [0.6] * 50  # mean 0.75: down
-    line = getting_up.row("stand", posture, np.array([90.0, 10.0, 30.0]))
-    assert line == f"| stand | {posture.mean():.2f} | 0.33 | 90.0 +- 0.0 (1) | 20.0 +- 10.0 (2) | 43.3 +- 24.0 (3) |"
-
-
-def test_getting_up_landing_times_the_fall_of_episodes_that_end_up():
-    """probes/getting_up.py's landing: of the episodes up at the end, the median step of the lowest posture (first 150
-    steps) and of the first step back up after it; an episode that stays down is left out."""
-    getting_up = probe_script("getting_up")
-    fall = lambda low, again: np.concatenate([np.ones(low), np.full(again - low, 0.1), np.ones(500 - again)])
-    down = np.concatenate([np.ones(5), np.zeros(495)])
-    assert getting_up.landing([fall(5, 15), fall(9, 30), fall(11, 40), down]) == (3, 9.0, 30.0)
-
-
-def test_imagination_gap_is_zero_when_reality_follows_imagination(smoke_run):
-    """probes/imagination_gap.py: read as real steps, the imagined states give the imagined reading (both -d(s_k, g) on
-    arrival, k = 1 .. H); run_episodes hands over one posterior state per step, t = 0 .. steps."""
-    import torch
-
-    import envs
-
-    gap = probe_script("imagination_gap")
-    cfgs, models, ckpt = checkpoint.load_run(smoke_run)
-    wm, actor = models["world_model"], models["actor"]
-    with torch.no_grad():
-        goals = models["goal_vae"].goal(torch.randn(2, ckpt["p_dim"]))
-    states = []
-    evaluate.run_episodes([envs.make_env("walker", "walk") for _ in range(2)], models, goals, 6, "state", 0, on_state=states.append)
-    assert len(states) == 7 and states[3]["deter"].shape == (2, cfgs["wm"].deter)
-    imagined = gap.imagined_reward(models, states[3], goals, 4, seed=1)
-    torch.manual_seed(1)
-    with torch.no_grad():
-        path, _ = wm.imagine(states[3], lambda feat: actor(feat, goals, deterministic=True)[0], 4)
-        real = gap.real_reward(models["dist_net"], wm.feat(path), goals, 0, 4)
-        assert imagined.shape == (2,) and torch.allclose(imagined, real)
-        assert not torch.allclose(imagined, gap.real_reward(models["dist_net"], wm.feat(path), goals, 1, 3))  # indexing matters
-
-
-def test_imagination_gap_reads_the_unpolished_actor_where_the_checkpoint_keeps_it(smoke_run, tmp_path):
-    """--unpolished loads the checkpoint's actor_unpolished in place of the polished actor, and says so where there is none."""
-    import torch
-
-    gap = probe_script("imagination_gap")
-    ckpt = torch.load(os.path.join(smoke_run, "checkpoint.pt"), weights_only=True)
-    assert "actor_unpolished" in ckpt  # the smoke preset polishes, as the cpu one does
-    torch.save({k: v for k, v in ckpt.items() if k != "actor_unpolished"}, tmp_path / "checkpoint.pt")
-    with pytest.raises(ValueError, match="keeps no unpolished actor: only a run trained with --ac-bc-polish"):
-        gap.load(str(tmp_path), unpolished=True)
-    polished, unpolished = gap.load(smoke_run)[1]["actor"], gap.load(smoke_run, unpolished=True)[1]["actor"]
-    for name, value in unpolished.state_dict().items():
-        assert torch.equal(value, ckpt["actor_unpolished"][name]) and torch.equal(polished.state_dict()[name], ckpt["models"]["actor"][name])
-
-
-def test_filter_probe_reproduces_the_benchmark_and_its_window_changes_the_state(smoke_run):
-    """probes/filter_probe.py: carried over the episode (window 0) the probe's filter is the benchmark's, return for return;
-    a window shorter than the episode or z's mean gives other states, so other returns."""
-    import torch
-
-    import envs
-
-    probe = probe_script("filter_probe")
-    cfgs, models, ckpt = checkpoint.load_run(smoke_run)
-    with torch.no_grad():
-        goals = models["goal_vae"].goal(torch.randn(2, ckpt["p_dim"]))
-    make = lambda: [envs.make_env("walker", "walk") for _ in range(2)]
-    plain, _ = evaluate.run_episodes(make(), models, goals, 12, "state", 3)
-    assert np.array_equal(probe.run_filtered(make(), models, goals, 12, 3), plain)
-    assert not np.allclose(probe.run_filtered(make(), models, goals, 12, 3, window=4), plain)
-    assert not np.allclose(probe.run_filtered(make(), models, goals, 12, 3, mean=True), plain)
-
-
-def test_ensemble_probe_acts_with_the_mean_of_its_clones_actions():
-    """probes/ensemble_probe.py: K actors act with the mean of their policy.Actor.act."""
-    import torch
-
-    import policy
-
-    ensemble = probe_script("ensemble_probe")
-    torch.manual_seed(0)
-    cfg = policy.ActorCriticConfig(**presets.PRESETS["ac"]["smoke"])
-    actors = [policy.Actor(cfg, 5, 5, 3) for _ in range(3)]
-    feat, goal = torch.randn(4, 5), torch.randn(4, 5)
-    with torch.no_grad():
-        expected = sum(a.act(feat, goal) for a in actors) / 3
-        assert torch.allclose(ensemble.Ensemble(actors).act(feat, goal), expected, atol=1e-6)
-        assert not torch.allclose(actors[0].act(feat, goal), expected)

@@ -185,15 +185,3 @@ def test_settings_run_each_of_their_cells_once(smoke_run, tmp_path):
     assert bad.returncode == 2 and "pass --demo NAME (one cell) or --settings SE-SV,... (their cells), not both" in bad.stderr
     bad = subprocess.run(command[:-2] + ["--settings", "SE-XX"], cwd=ROOT, capture_output=True, text=True)
     assert bad.returncode == 1 and bad.stderr.strip() == "error: unknown setting(s) SE-XX: choose from SE-SV, SE-CV, CE-SV, CE-CV"
-
-
-def test_reward_probe_scores_saved_actors_in_the_real_body_and_in_imagination(smoke_run, tmp_path):
-    run = _copy(smoke_run, tmp_path, "run")
-    out = subprocess.run([sys.executable, "probes/genrl_reward.py", run, "walker_walk", "side"], cwd=ROOT, capture_output=True, text=True)
-    assert out.returncode == 1 and "no GenRL training state of walker_walk (side view)" in out.stderr
-    genrl.run_cell(run, "walker_walk", "side", SMOKE)
-    out = subprocess.run([sys.executable, "probes/genrl_reward.py", run, "walker_walk", "side", "--preset", "smoke"], cwd=ROOT, capture_output=True, text=True)
-    assert out.returncode == 0, out.stderr[-2000:]
-    lines = [line.split("|") for line in out.stdout.splitlines() if "|" in line][1:]
-    assert [line[0].strip() for line in lines] == ["phase-1 policy, demo 0's zero-shot goal"] + [f"GenRL seed {s} after {SMOKE.steps} updates" for s in (0, 1)]
-    assert all(-1 <= float(x) <= 1 for line in lines for x in line[2:])  # max-cosine rewards

@@ -13,7 +13,6 @@ import presets
 import rundir
 import tables
 import video_encoder
-from conftest import probe_script
 
 SMOKE = imitate.ImitateConfig(**presets.PRESETS["imitate"]["smoke"])
 
@@ -88,47 +87,6 @@ def test_posterior_goals_start_at_the_zero_shot_goal(smoke_run):
     assert goals.shape == (10, vae.deter + vae.stoch) and torch.equal(goals[0], vae.goal(torch.as_tensor(p_last)).detach())
     assert torch.equal(goals, online.posterior_goals(vae, p_last, 10, seed=3)) and not torch.equal(goals, online.posterior_goals(vae, p_last, 10, seed=4))
     assert len(torch.unique(goals, dim=0)) == 10
-
-
-def test_goal_candidates_probe_sets_and_pairing(smoke_run):
-    """probes/goal_candidates.py: four sets of 10 goals, 'zs' the demos' zero-shot goals; --paired differences by cell and seed."""
-    probe = probe_script("goal_candidates")
-    _, models, _ = checkpoint.load_run(smoke_run)
-    demo_p = list(np.random.default_rng(0).standard_normal((10, 5, models["goal_vae"].feat_dim)).astype(np.float32))
-    sets = probe.candidate_sets(models["goal_vae"], demo_p)
-    assert list(sets) == ["zs", "q x1", "q x2", "mix"] and all(g.shape == (10, models["goal_vae"].deter + models["goal_vae"].stoch) for g in sets.values())
-    assert torch.equal(sets["zs"], models["goal_vae"].goal(torch.as_tensor(np.stack([p[-1] for p in demo_p]))).detach())
-    row = lambda method, seed, score, **config: dict(agent="walker", setting="SE-SV", task="run", seed=seed, method=method, score=score, config=config)
-    rows = [row("GIIL-ZS (demo 0)", 0, 40.0), row("GIIL-ZS (demo 0)", 1, 50.0), row("GIIL-online", 0, 45.0), row("GIIL-online", 1, 45.0),
-            row("GIIL-online", 0, 50.0, candidates="posterior"), row("GIIL-online", 1, 44.0, candidates="posterior")]
-    assert probe.paired(rows).splitlines()[-1] == "| walker | SE-SV run (2 pairs) | 47.0 +- 3.0 | +2.0 +- 8.0 | +2.0 +- 3.0 |"
-    # the scorer table: a scorer that orders the goals as their true score on B does ranks at +1, its reverse at -1
-    b = [[float(k)] * 2 for k in range(10)]
-    same, reverse = [list(range(10))] * 2, [list(range(10))[::-1]] * 2
-    scorer_row = dict(agent="walker", ot_a={"100": same, "200": reverse, "500": same}, true_a=same, true_b=b)
-    assert probe.scorer_table([scorer_row]).splitlines()[-1] == "| walker | 1 | +1.00 | +1.00 | -1.00 | -1.00 | +1.00 | +1.00 | +1.00 |"
-
-
-def test_goal_variance_splits_goal_from_episode_noise():
-    """Goals that differ only by their episodes' noise have no goal variance; a fixed offset per goal is all goal."""
-    goal_variance = probe_script("goal_variance")
-    g, e, rel = goal_variance.split([[10.0, 20.0, 30.0]] * 10)
-    assert (g, rel) == (0.0, 0.0) and abs(e - 10.0) < 1e-9
-    g, e, rel = goal_variance.split([[k, k, k] for k in range(10)])
-    assert e == 0.0 and rel == 1.0 and abs(g - np.std(range(10), ddof=1)) < 1e-9
-
-
-def test_goal_probe_scores_every_goal_by_every_objective(smoke_run):
-    """On the smoke agent: each objective gives one finite score per goal; `real` is online.ot_score of the same
-    episodes per step, and the replayed features start at the filtered ones (the same s_0)."""
-    goal_probe = probe_script("goal_probe")
-    cfgs, models, _ = checkpoint.load_run(smoke_run)
-    demo_p = np.random.default_rng(0).standard_normal((3, 40, models["goal_vae"].feat_dim)).astype(np.float32)
-    demo_p /= np.linalg.norm(demo_p, axis=-1, keepdims=True)
-    scores, true, error = goal_probe.probe_cell(models, cfgs, video_encoder.load_encoder("default"), "run", demo_p, [7],
-                                                imitate.ot_reward.OTConfig(iters=5), steps=12, n_starts=4)
-    assert set(scores) == set(goal_probe.OBJECTIVES) and all(v.shape == (3,) and np.isfinite(v).all() for v in scores.values())
-    assert true.shape == (3,) and error.shape == (len(goal_probe.ERROR_STEPS),)
 
 
 def test_finetune_and_online_share_their_zero_shot_start(smoke_run):

@@ -12,7 +12,6 @@ import imitate
 import presets
 import rundir
 import tables
-from conftest import probe_script
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
@@ -143,24 +142,6 @@ def test_finetuning_gain_is_paired_by_cell_and_seed():
     walk = text.split("### walker agent, walk")[1].split("###")[0]
     assert "| CE-SV | - | 40.0 +- 0.0 | 66.7 +- 12.0 | 15.0 +- 5.0 | 12.68 | 92.11 |" in walk
     assert "| CE-SV | - | 36.7 +- 3.3 | 52.5 +- 16.5 | 3.3 +- 12.0 | " in text.split("###")[1]  # all tasks: +10, +20, -20
-
-
-def test_ft_pairs_pairs_seeds_of_two_variants(tmp_path):
-    """probes/ft_pairs.py: A's last GIIL-FT row of a (demo, view, seed) against B's, both against A's GIIL-ZS (demo 0);
-    a row of A with B's settings (copied, its variant not run yet) is no pair."""
-    ft_pairs = probe_script("ft_pairs")
-    row = lambda method, seed, score, demo="walker_walk", **config: dict(demo=demo, view="side", task="walk", setting="SE-SV",
-                                                                          method=method, seed=seed, score=score, config=config)
-    frozen = [row("GIIL-FT", s, 50.0 + s) for s in range(2)] + [row("GIIL-FT", 0, 10.0, demo="walker_run")]
-    runs = {"a": [row("GIIL-ZS (demo 0)", s, 40.0) for s in range(2)] + frozen + [row("GIIL-ZS (demo 0)", 0, 5.0, demo="walker_run")]
-            + [row("GIIL-FT", 0, 30.0, goal_lr=1e-4), row("GIIL-FT", 0, 45.0, goal_lr=1e-4), row("GIIL-FT", 1, 60.0, goal_lr=1e-4)],
-            "b": frozen}
-    for name, rows in runs.items():
-        os.makedirs(tmp_path / name)
-        with open(tmp_path / name / "results.jsonl", "w") as f:
-            f.write("".join(json.dumps(r) + "\n" for r in rows))
-    got = [(r["seed"], r["score"], b, zs0) for r, b, zs0 in ft_pairs.pairs(str(tmp_path / "a"), str(tmp_path / "b"))]
-    assert got == [(0, 45.0, 50.0, 40.0), (1, 60.0, 51.0, 40.0)]  # walker_run's copied row is no pair
 
 
 def _row(method, demo, seed, score, seconds, setting="SE-SV", **config):

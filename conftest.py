@@ -4,7 +4,7 @@ import sys
 import pytest
 
 os.environ.setdefault("MUJOCO_GL", "egl")
-sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 
 
 @pytest.fixture(scope="session")
@@ -49,7 +49,7 @@ def probe_script(name):
     """A script of probes/ (not a package) imported as a module, e.g. probe_script("ft_pairs")."""
     import importlib.util
 
-    path = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "probes", f"{name}.py")
+    path = os.path.join(os.path.dirname(os.path.abspath(__file__)), "probes", f"{name}.py")
     spec = importlib.util.spec_from_file_location(name, path)
     module = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(module)

@@ -1,0 +1,233 @@
+"""probes/: each research script's reading on a toy or the smoke run (the product's tests, tests/, never load a probe)."""
+import glob
+import json
+import os
+import shutil
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+import torch
+
+import aime_nob
+import checkpoint
+import evaluate
+import genrl
+import ot_reward
+import presets
+import video_encoder
+from conftest import probe_script
+
+GENRL_SMOKE = genrl.GenRLConfig(**presets.PRESETS["genrl"]["smoke"])
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+
+
+def _copy(smoke_run, tmp_path, name):
+    run = str(tmp_path / name)
+    shutil.copytree(smoke_run, run, ignore=shutil.ignore_patterns("results.jsonl", "baselines"))
+    return run
+
+
+def test_aime_reward_ranks_each_seeds_episodes(smoke_run, tmp_path):
+    """probes/aime_reward.py reads each AIME-NoB seed's log: Spearman of its episodes' OT sums against their task returns."""
+    run = _copy(smoke_run, tmp_path, "run")
+    aime_nob.run_cell(run, "stickman_stand", "side", aime_nob.AIMENoBConfig(**presets.PRESETS["aime_nob"]["smoke"]))
+    probe = [sys.executable, "probes/aime_reward.py", run]
+    out = subprocess.run(probe + ["stickman_stand", "side", "--body"], cwd=ROOT, capture_output=True, text=True)
+    assert out.returncode == 0, out.stderr[-2000:]
+    log = torch.load(glob.glob(os.path.join(run, "baselines", "AIME-NoB_stickman_stand_side_s0_*.pt"))[0], weights_only=True)["log"]
+    rho = evaluate.spearman([e["ot_sum"] for e in log], [e["task_return"] for e in log])
+    assert f"seed 0 | 20 | {len(log)} | {rho:+.2f} |" in out.stdout and "\nall | " in out.stdout
+    out = subprocess.run(probe + ["walker_walk", "side"], cwd=ROOT, capture_output=True, text=True)
+    assert out.returncode == 1 and "no AIME-NoB training state of walker_walk (side view)" in out.stderr
+    out = subprocess.run(probe + ["stickman_walk", "side", "--body"], cwd=ROOT, capture_output=True, text=True)
+    assert out.returncode == 2 and "--body needs a stand cell" in out.stderr
+
+
+def test_getting_up_row_classes_episodes_by_their_last_steps():
+    """probes/getting_up.py: an episode is up when its mean posture over the last 100 steps is >= 0.8, whatever came before."""
+    getting_up = probe_script("getting_up")
+    posture = np.zeros((500, 3))
+    posture[-100:, 0] = 0.85  # up only at the end
+    posture[:400, 1] = 1.0  # up, then fell for the last 100 steps
+    posture[-100:, 2] = [0.9] * 50 + [0.6] * 50  # mean 0.75: down
+    line = getting_up.row("stand", posture, np.array([90.0, 10.0, 30.0]))
+    assert line == f"| stand | {posture.mean():.2f} | 0.33 | 90.0 +- 0.0 (1) | 20.0 +- 10.0 (2) | 43.3 +- 24.0 (3) |"
+
+
+def test_getting_up_landing_times_the_fall_of_episodes_that_end_up():
+    """probes/getting_up.py's landing: of the episodes up at the end, the median step of the lowest posture (first 150
+    steps) and of the first step back up after it; an episode that stays down is left out."""
+    getting_up = probe_script("getting_up")
+    fall = lambda low, again: np.concatenate([np.ones(low), np.full(again - low, 0.1), np.ones(500 - again)])
+    down = np.concatenate([np.ones(5), np.zeros(495)])
+    assert getting_up.landing([fall(5, 15), fall(9, 30), fall(11, 40), down]) == (3, 9.0, 30.0)
+
+
+def test_imagination_gap_is_zero_when_reality_follows_imagination(smoke_run):
+    """probes/imagination_gap.py: read as real steps, the imagined states give the imagined reading (both -d(s_k, g) on
+    arrival, k = 1 .. H); run_episodes hands over one posterior state per step, t = 0 .. steps."""
+    import torch
+
+    import envs
+
+    gap = probe_script("imagination_gap")
+    cfgs, models, ckpt = checkpoint.load_run(smoke_run)
+    wm, actor = models["world_model"], models["actor"]
+    with torch.no_grad():
+        goals = models["goal_vae"].goal(torch.randn(2, ckpt["p_dim"]))
+    states = []
+    evaluate.run_episodes([envs.make_env("walker", "walk") for _ in range(2)], models, goals, 6, "state", 0, on_state=states.append)
+    assert len(states) == 7 and states[3]["deter"].shape == (2, cfgs["wm"].deter)
+    imagined = gap.imagined_reward(models, states[3], goals, 4, seed=1)
+    torch.manual_seed(1)
+    with torch.no_grad():
+        path, _ = wm.imagine(states[3], lambda feat: actor(feat, goals, deterministic=True)[0], 4)
+        real = gap.real_reward(models["dist_net"], wm.feat(path), goals, 0, 4)
+        assert imagined.shape == (2,) and torch.allclose(imagined, real)
+        assert not torch.allclose(imagined, gap.real_reward(models["dist_net"], wm.feat(path), goals, 1, 3))  # indexing matters
+
+
+def test_imagination_gap_reads_the_unpolished_actor_where_the_checkpoint_keeps_it(smoke_run, tmp_path):
+    """--unpolished loads the checkpoint's actor_unpolished in place of the polished actor, and says so where there is none."""
+    import torch
+
+    gap = probe_script("imagination_gap")
+    ckpt = torch.load(os.path.join(smoke_run, "checkpoint.pt"), weights_only=True)
+    assert "actor_unpolished" in ckpt  # the smoke preset polishes, as the cpu one does
+    torch.save({k: v for k, v in ckpt.items() if k != "actor_unpolished"}, tmp_path / "checkpoint.pt")
+    with pytest.raises(ValueError, match="keeps no unpolished actor: only a run trained with --ac-bc-polish"):
+        gap.load(str(tmp_path), unpolished=True)
+    polished, unpolished = gap.load(smoke_run)[1]["actor"], gap.load(smoke_run, unpolished=True)[1]["actor"]
+    for name, value in unpolished.state_dict().items():
+        assert torch.equal(value, ckpt["actor_unpolished"][name]) and torch.equal(polished.state_dict()[name], ckpt["models"]["actor"][name])
+
+
+def test_filter_probe_reproduces_the_benchmark_and_its_window_changes_the_state(smoke_run):
+    """probes/filter_probe.py: carried over the episode (window 0) the probe's filter is the benchmark's, return for return;
+    a window shorter than the episode or z's mean gives other states, so other returns."""
+    import torch
+
+    import envs
+
+    probe = probe_script("filter_probe")
+    cfgs, models, ckpt = checkpoint.load_run(smoke_run)
+    with torch.no_grad():
+        goals = models["goal_vae"].goal(torch.randn(2, ckpt["p_dim"]))
+    make = lambda: [envs.make_env("walker", "walk") for _ in range(2)]
+    plain, _ = evaluate.run_episodes(make(), models, goals, 12, "state", 3)
+    assert np.array_equal(probe.run_filtered(make(), models, goals, 12, 3), plain)
+    assert not np.allclose(probe.run_filtered(make(), models, goals, 12, 3, window=4), plain)
+    assert not np.allclose(probe.run_filtered(make(), models, goals, 12, 3, mean=True), plain)
+
+
+def test_ensemble_probe_acts_with_the_mean_of_its_clones_actions():
+    """probes/ensemble_probe.py: K actors act with the mean of their policy.Actor.act."""
+    import torch
+
+    import policy
+
+    ensemble = probe_script("ensemble_probe")
+    torch.manual_seed(0)
+    cfg = policy.ActorCriticConfig(**presets.PRESETS["ac"]["smoke"])
+    actors = [policy.Actor(cfg, 5, 5, 3) for _ in range(3)]
+    feat, goal = torch.randn(4, 5), torch.randn(4, 5)
+    with torch.no_grad():
+        expected = sum(a.act(feat, goal) for a in actors) / 3
+        assert torch.allclose(ensemble.Ensemble(actors).act(feat, goal), expected, atol=1e-6)
+        assert not torch.allclose(actors[0].act(feat, goal), expected)
+
+
+
+def test_ot_probe_scores_goals_alike_for_alike_goals(smoke_run):
+    """probes/ot_probe.py: J(g) is a mean OT reward (<= 0), the same for the same goal (every goal meets the same starts and
+    imagination noise), and the script prints one line per cell and the summary."""
+    import subprocess
+    import sys
+
+    probe = probe_script("ot_probe")
+    cfgs, models, _ = checkpoint.load_run(smoke_run)
+    feat_dim = models["world_model"].feat_dim
+    demo_p = torch.nn.functional.normalize(torch.randn(2, 20, models["goal_vae"].feat_dim), dim=-1)
+    g = torch.randn(feat_dim)
+    J = probe.imagined_ot(models, cfgs, torch.stack([g, torch.randn(feat_dim), g]), demo_p, starts=6)
+    assert J.shape == (3,) and (J <= 0).all() and J[0] == J[2] and J[0] != J[1]
+    spearman = evaluate.spearman  # the probes' rank correlation
+    assert spearman([1, 2, 3], [10, 20, 30]) == pytest.approx(1) and spearman([1, 2, 3], [3, 2, 1]) == pytest.approx(-1)
+    out = subprocess.run([sys.executable, probe.__file__, smoke_run, "--settings", "SE-SV", "--starts", "4"], capture_output=True, text=True)
+    assert out.returncode == 0, out.stderr[-2000:]
+    lines = out.stdout.strip().splitlines()
+    assert [l.split(" |")[0] for l in lines[1:-1]] == [f"SE-SV {t}" for t in ("stand", "walk", "run", "jump")]
+    assert lines[-1].startswith("own task's goals ranked first in ") and " of 4 cells" in lines[-1]
+
+
+def test_goal_candidates_probe_sets_and_pairing(smoke_run):
+    """probes/goal_candidates.py: four sets of 10 goals, 'zs' the demos' zero-shot goals; --paired differences by cell and seed."""
+    probe = probe_script("goal_candidates")
+    _, models, _ = checkpoint.load_run(smoke_run)
+    demo_p = list(np.random.default_rng(0).standard_normal((10, 5, models["goal_vae"].feat_dim)).astype(np.float32))
+    sets = probe.candidate_sets(models["goal_vae"], demo_p)
+    assert list(sets) == ["zs", "q x1", "q x2", "mix"] and all(g.shape == (10, models["goal_vae"].deter + models["goal_vae"].stoch) for g in sets.values())
+    assert torch.equal(sets["zs"], models["goal_vae"].goal(torch.as_tensor(np.stack([p[-1] for p in demo_p]))).detach())
+    row = lambda method, seed, score, **config: dict(agent="walker", setting="SE-SV", task="run", seed=seed, method=method, score=score, config=config)
+    rows = [row("GIIL-ZS (demo 0)", 0, 40.0), row("GIIL-ZS (demo 0)", 1, 50.0), row("GIIL-online", 0, 45.0), row("GIIL-online", 1, 45.0),
+            row("GIIL-online", 0, 50.0, candidates="posterior"), row("GIIL-online", 1, 44.0, candidates="posterior")]
+    assert probe.paired(rows).splitlines()[-1] == "| walker | SE-SV run (2 pairs) | 47.0 +- 3.0 | +2.0 +- 8.0 | +2.0 +- 3.0 |"
+    # the scorer table: a scorer that orders the goals as their true score on B does ranks at +1, its reverse at -1
+    b = [[float(k)] * 2 for k in range(10)]
+    same, reverse = [list(range(10))] * 2, [list(range(10))[::-1]] * 2
+    scorer_row = dict(agent="walker", ot_a={"100": same, "200": reverse, "500": same}, true_a=same, true_b=b)
+    assert probe.scorer_table([scorer_row]).splitlines()[-1] == "| walker | 1 | +1.00 | +1.00 | -1.00 | -1.00 | +1.00 | +1.00 | +1.00 |"
+
+
+def test_goal_variance_splits_goal_from_episode_noise():
+    """Goals that differ only by their episodes' noise have no goal variance; a fixed offset per goal is all goal."""
+    goal_variance = probe_script("goal_variance")
+    g, e, rel = goal_variance.split([[10.0, 20.0, 30.0]] * 10)
+    assert (g, rel) == (0.0, 0.0) and abs(e - 10.0) < 1e-9
+    g, e, rel = goal_variance.split([[k, k, k] for k in range(10)])
+    assert e == 0.0 and rel == 1.0 and abs(g - np.std(range(10), ddof=1)) < 1e-9
+
+
+def test_goal_probe_scores_every_goal_by_every_objective(smoke_run):
+    """On the smoke agent: each objective gives one finite score per goal; `real` is online.ot_score of the same
+    episodes per step, and the replayed features start at the filtered ones (the same s_0)."""
+    goal_probe = probe_script("goal_probe")
+    cfgs, models, _ = checkpoint.load_run(smoke_run)
+    demo_p = np.random.default_rng(0).standard_normal((3, 40, models["goal_vae"].feat_dim)).astype(np.float32)
+    demo_p /= np.linalg.norm(demo_p, axis=-1, keepdims=True)
+    scores, true, error = goal_probe.probe_cell(models, cfgs, video_encoder.load_encoder("default"), "run", demo_p, [7],
+                                                ot_reward.OTConfig(iters=5), steps=12, n_starts=4)
+    assert set(scores) == set(goal_probe.OBJECTIVES) and all(v.shape == (3,) and np.isfinite(v).all() for v in scores.values())
+    assert true.shape == (3,) and error.shape == (len(goal_probe.ERROR_STEPS),)
+
+
+def test_ft_pairs_pairs_seeds_of_two_variants(tmp_path):
+    """probes/ft_pairs.py: A's last GIIL-FT row of a (demo, view, seed) against B's, both against A's GIIL-ZS (demo 0);
+    a row of A with B's settings (copied, its variant not run yet) is no pair."""
+    ft_pairs = probe_script("ft_pairs")
+    row = lambda method, seed, score, demo="walker_walk", **config: dict(demo=demo, view="side", task="walk", setting="SE-SV",
+                                                                          method=method, seed=seed, score=score, config=config)
+    frozen = [row("GIIL-FT", s, 50.0 + s) for s in range(2)] + [row("GIIL-FT", 0, 10.0, demo="walker_run")]
+    runs = {"a": [row("GIIL-ZS (demo 0)", s, 40.0) for s in range(2)] + frozen + [row("GIIL-ZS (demo 0)", 0, 5.0, demo="walker_run")]
+            + [row("GIIL-FT", 0, 30.0, goal_lr=1e-4), row("GIIL-FT", 0, 45.0, goal_lr=1e-4), row("GIIL-FT", 1, 60.0, goal_lr=1e-4)],
+            "b": frozen}
+    for name, rows in runs.items():
+        os.makedirs(tmp_path / name)
+        with open(tmp_path / name / "results.jsonl", "w") as f:
+            f.write("".join(json.dumps(r) + "\n" for r in rows))
+    got = [(r["seed"], r["score"], b, zs0) for r, b, zs0 in ft_pairs.pairs(str(tmp_path / "a"), str(tmp_path / "b"))]
+    assert got == [(0, 45.0, 50.0, 40.0), (1, 60.0, 51.0, 40.0)]  # walker_run's copied row is no pair
+
+
+def test_reward_probe_scores_saved_actors_in_the_real_body_and_in_imagination(smoke_run, tmp_path):
+    run = _copy(smoke_run, tmp_path, "run")
+    out = subprocess.run([sys.executable, "probes/genrl_reward.py", run, "walker_walk", "side"], cwd=ROOT, capture_output=True, text=True)
+    assert out.returncode == 1 and "no GenRL training state of walker_walk (side view)" in out.stderr
+    genrl.run_cell(run, "walker_walk", "side", GENRL_SMOKE)
+    out = subprocess.run([sys.executable, "probes/genrl_reward.py", run, "walker_walk", "side", "--preset", "smoke"], cwd=ROOT, capture_output=True, text=True)
+    assert out.returncode == 0, out.stderr[-2000:]
+    lines = [line.split("|") for line in out.stdout.splitlines() if "|" in line][1:]
+    assert [line[0].strip() for line in lines] == ["phase-1 policy, demo 0's zero-shot goal"] + [f"GenRL seed {s} after {GENRL_SMOKE.steps} updates" for s in (0, 1)]
+    assert all(-1 <= float(x) <= 1 for line in lines for x in line[2:])  # max-cosine rewards
