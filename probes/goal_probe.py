@@ -131,17 +131,17 @@ def probe_cell(models, cfgs, encoder, task, demo_p, seeds, ot_cfg, steps, n_star
 
 
 def markdown(rows):
-    """The probe's table: per cell, Spearman (objective, true score) over its goals; means over same-body and cross cells."""
-    head = "| agent | cell | true score: mean (best) | " + " | ".join(OBJECTIVES) + " | replay cos at 15 / 100 / 500 |"
+    """The probe's table: per run and cell, Spearman (objective, true score) over its goals; means over same-body and cross cells."""
+    head = "| run | cell | true score: mean (best) | " + " | ".join(OBJECTIVES) + " | replay cos at 15 / 100 / 500 |"
     out = [head, "|---" * (head.count("|") - 1) + "|"]
     for r in rows:
-        out.append(f"| {r['agent']} | {r['setting']} {r['task']} | {np.mean(r['true']):.1f} ({max(r['true']):.1f}) | "
+        out.append(f"| {r['run']} | {r['setting']} {r['task']} | {np.mean(r['true']):.1f} ({max(r['true']):.1f}) | "
                    + " | ".join(f"{r['spearman'][k]:.2f}" for k in OBJECTIVES) + " | " + " / ".join(f"{v:.2f}" for v in r["replay_cos"].values()) + " |")
     for name, keep in (("same body (SE-SV, SE-CV)", "SE"), ("cross body (CE-SV, CE-CV)", "CE")):
-        for agent in sorted({r["agent"] for r in rows}):
-            sel = [r for r in rows if r["agent"] == agent and r["setting"].startswith(keep)]
+        for run in sorted({r["run"] for r in rows}):
+            sel = [r for r in rows if r["run"] == run and r["setting"].startswith(keep)]
             if sel:
-                out.append(f"| {agent} | mean of {len(sel)}, {name} | | " + " | ".join(
+                out.append(f"| {run} | mean of {len(sel)}, {name} | | " + " | ".join(
                     f"**{np.nanmean([r['spearman'][k] for r in sel]):.2f}**" for k in OBJECTIVES) + " | " + " / ".join(
                     f"{np.mean([list(r['replay_cos'].values())[i] for r in sel]):.2f}" for i in range(len(ERROR_STEPS))) + " |")
     return "\n".join(out)
@@ -167,10 +167,10 @@ def main():
     encoder = video_encoder.load_encoder(cfgs["train"].encoder)
     ot_cfg = ot_reward.OTConfig()
     args.out = args.out or f"docs/results/goal_probe_{agent}.jsonl"
-    done = {(r["agent"], r["task"], r["setting"]) for r in rundir.read_jsonl(args.out)}
+    done = {(r["run"], r["task"], r["setting"]) for r in rundir.read_jsonl(args.out)}
     os.makedirs(os.path.dirname(args.out) or ".", exist_ok=True)
     for task, where in envs.cells(agent):
-        if where not in args.settings.split(",") or task not in args.tasks.split(",") or (agent, task, where) in done:
+        if where not in args.settings.split(",") or task not in args.tasks.split(",") or (args.run, task, where) in done:
             continue
         demo, view = envs.demo_of(agent, task, where)
         demo_p = np.stack([d["p"] for d in collect.load_folder(os.path.join(data, "demos", f"{demo}_{view}"), ("p",))])
