@@ -30,6 +30,7 @@ import argparse
 import dataclasses
 import json
 import os
+import re
 import time
 from typing import Callable, ClassVar
 
@@ -220,14 +221,16 @@ def imitate(run_dir, demo, view, ic, searches=(), oc=None, zero_shot=True, done=
 
     def evaluate_goal(method, seed, goal, k, t0, **extra):
         """eval_episodes episodes at once with goal (F,), environment seeds 20000 + 100 seed + e: a search's seed s and
-        GIIL-ZS (demo 0) seed s meet the same start states. Seed 0's first episode is written as a video beside demo k."""
-        render = bool(ic.video) and seed == 0
+        GIIL-ZS (demo 0) seed s meet the same start states. Seed 0's first episode is written as a video beside demo k,
+        but for GIIL-ZS (demo 0): its seed 0 is GIIL-ZS's demo 0, goal and start alike, already written."""
+        render = bool(ic.video) and seed == 0 and method != "GIIL-ZS (demo 0)"
         env_list = [envs.make_env(tc.env, task) for _ in range(ic.eval_episodes)]
         returns, frames = evaluate.run_episodes(env_list, models, goal[None].expand(ic.eval_episodes, -1), ic.eval_steps,
                                                 cfgs["wm"].obs, 20_000 + 100 * seed, render)
         scores = [evaluate.episode_score(task, r, ic.eval_steps) for r in returns]
         if render:
-            evaluate.write_video(os.path.join(out_dir, f"{demo}_{view}_{method.replace(' ', '_')}_s{seed}.mp4"), demos[k]["pixels"], frames[0])
+            name = re.sub(r"[^A-Za-z0-9-]+", "_", method)  # GIIL-ZS, GIIL-FT, GIIL-online: no shell quoting needed
+            evaluate.write_video(os.path.join(out_dir, f"{demo}_{view}_{name}_s{seed}.mp4"), demos[k]["pixels"], frames[0])
         row = {"agent": tc.env, "demo": demo, "view": view, "task": task, "setting": where, "method": method, "seed": seed,
                "score": float(np.mean(scores)), "episode_scores": scores, "time": round(time.time() - t0, 1), "demo_returns": demo_returns,
                "config": result_config(ic, method, oc), "weights": weights, **extra}

@@ -24,7 +24,9 @@ def test_zero_shot_and_finetune_end_to_end(smoke_run):
     assert len(zs) == 2 and len(ft) == len(zs0) == SMOKE.seeds  # smoke: 2 demos per folder, 2 seeds
     assert all(r["setting"] == "CE-CV" and r["task"] == "run" and np.isfinite(r["score"]) for r in rows)
     assert all(r["goal_shift"] > 0 for r in ft)  # finetuning moved g
-    assert os.path.getsize(os.path.join(smoke_run, "imitate", "stickman_run_diagonal_GIIL-FT_s0.mp4")) > 0
+    videos = sorted(n for n in os.listdir(os.path.join(smoke_run, "imitate")) if n.startswith("stickman_run_diagonal"))
+    assert videos == ["stickman_run_diagonal_GIIL-FT_s0.mp4", "stickman_run_diagonal_GIIL-ZS_s0.mp4"]  # ZS (demo 0)'s is ZS's demo 0
+    assert os.path.getsize(os.path.join(smoke_run, "imitate", videos[0])) > 0
     logged = [json.loads(l) for l in open(os.path.join(smoke_run, "results.jsonl"))]
     assert logged[-len(rows):] == rows
 
