@@ -188,6 +188,9 @@ def load_episode(path, keys=tuple(KEYS)):
         if value.dtype == np.float32 and not np.all(np.isfinite(value)):
             bad = np.argwhere(~np.isfinite(value))[0]
             raise ValueError(f"{path}: key {key!r} must be a finite array, has {value[tuple(bad)]} at step {bad[0]}; delete the file and rerun collect.py")
+        if key == "action" and np.abs(value).max() > 1:  # the environments' action bounds (envs.make_env)
+            bad = np.argwhere(np.abs(value) > 1)[0]
+            raise ValueError(f"{path}: key 'action' must lie in [-1, 1], has {value[tuple(bad)]:g} at step {bad[0]}; delete the file and rerun collect.py")
     for key in META[:-1]:
         episode[key] = str(episode[key])
     episode["return"] = float(episode["return"])
@@ -220,6 +223,18 @@ class Segments:
         return out
 
 
+def folder_metadata(folder):
+    """What a folder's name says its episodes are: data/<body> (D_body) their body, data/demos/<body>_<task>_<view> their
+    body, task and view; {} for a folder of another name."""
+    name = os.path.basename(os.path.normpath(folder))
+    if name in envs.BODIES:
+        return {"body": name}
+    parts = name.rsplit("_", 2)
+    if len(parts) == 3 and parts[0] in envs.BODIES and parts[1] in envs.TASKS and parts[2] in envs.VIEWS:
+        return dict(zip(("body", "task", "view"), parts))
+    return {}
+
+
 def load_folder(folder, keys=tuple(KEYS), encoder=None):
     """All episodes of a folder, sorted by name. One collection only: features from two encoders, episodes of two
     lengths or arrays of two widths are an error naming both files."""
@@ -227,9 +242,13 @@ def load_folder(folder, keys=tuple(KEYS), encoder=None):
     if not names:
         raise FileNotFoundError(f"no episodes in {folder}: run `python collect.py` (see --help)")
     episodes = [load_episode(os.path.join(folder, n), keys) for n in names]
-    first = episodes[0]
+    first, expected = episodes[0], folder_metadata(folder)
     for episode in episodes:
         check_same_encoder(encoder or first["encoder"], episode["encoder"], episode["path"])
+        odd = [f"{k} {episode[k]!r}" for k, v in expected.items() if episode[k] != v]
+        if odd:
+            raise ValueError(f"{episode['path']}: an episode of {', '.join(odd)} in {folder}, which holds "
+                             f"{', '.join(f'{k} {v!r}' for k, v in expected.items())}: move or delete it")
         for key in keys:
             if episode[key].shape[1:] != first[key].shape[1:]:
                 raise ValueError(f"{episode['path']}: key {key!r} has shape {episode[key].shape[1:]} per step, {first['path']} has "

@@ -644,3 +644,25 @@ def test_every_config_field_says_what_it_is_in_the_help():
         assert [f.name for f in dataclasses.fields(cls) if not comments.get(f.name)] == [], cls.__name__
     out = subprocess.run([sys.executable, "imitate.py", "--help"], cwd=ROOT, capture_output=True, text=True).stdout
     assert "Adam on g (ours; chosen on same-body cells," in out and "(default 0.0003, or the preset's)" in out
+
+
+def test_an_episode_that_is_not_what_its_folder_says_is_named(smoke_data, tmp_path):
+    """A stickman episode or a D_body episode among walker run demos, and actions outside [-1, 1]: one line each."""
+    data = str(tmp_path / "data")
+    shutil.copytree(smoke_data, data)
+    folder = os.path.join(data, "demos", "walker_run_side")
+    shutil.copy(os.path.join(data, "demos", "stickman_run_side", "00.npz"), os.path.join(folder, "07.npz"))
+    with pytest.raises(ValueError, match=r"07.npz: an episode of body 'stickman' in .*walker_run_side, which holds body 'walker', task 'run', view 'side': move or delete it"):
+        collect.load_folder(folder, ("p",))
+    body = sorted(n for n in os.listdir(os.path.join(data, "walker")) if n.startswith("walk_"))[0]
+    shutil.copy(os.path.join(data, "walker", body), os.path.join(folder, "07.npz"))
+    with pytest.raises(ValueError, match=r"07.npz: an episode of task 'walk'"):
+        collect.load_folder(folder, ("p",))
+    os.remove(os.path.join(folder, "07.npz"))
+    assert len(collect.load_folder(folder, ("p",))) == 2
+    path = os.path.join(data, "walker", body)
+    episode = dict(np.load(path))
+    episode["action"][3, 1] = 1e6
+    np.savez(path, **episode)
+    with pytest.raises(ValueError, match=r"key 'action' must lie in \[-1, 1\], has 1e\+06 at step 3"):
+        collect.load_folder(os.path.join(data, "walker"), ("action",))
