@@ -234,12 +234,16 @@ def train_updates_per_s(tree, data, threads, logs=4, every=10):
         proc.wait()
 
 
-# GIIL-FT's update (imitate.finetune_goal) of the shipped walker on the stickman's side-view walk demos, timed in a
+# GIIL-FT's update (goal_inference.finetune_goal) of the shipped walker on the stickman's side-view walk demos, timed in a
 # source tree of its own (its load_run was train.py's before checkpoint.py): seconds per update after 3 warm-up updates
 FT_UPDATE = """
 import dataclasses, sys, time
 import torch
-import collect, imitate, ot_reward, rundir
+import collect, ot_reward, rundir
+try:
+    import goal_inference as phase2
+except ImportError:
+    import imitate as phase2  # before goal_inference.py
 try:
     from checkpoint import load_run
 except ImportError:
@@ -248,8 +252,8 @@ torch.set_num_threads(1)
 rundir.fast_matmul()
 cfgs, models, _ = load_run(sys.argv[1], "cpu")
 demo_p = [d["p"] for d in collect.load_folder(sys.argv[2], ("p",))]
-run = lambda n: imitate.finetune_goal(models, cfgs, dataclasses.replace(imitate.ImitateConfig(), steps=n), ot_reward.OTConfig(),
-                                      torch.as_tensor(demo_p[0][-1]), demo_p, 0, "cpu")
+run = lambda n: phase2.finetune_goal(models, cfgs, dataclasses.replace(phase2.ImitateConfig(), steps=n), ot_reward.OTConfig(),
+                                     torch.as_tensor(demo_p[0][-1]), demo_p, 0, "cpu")
 run(3)
 start = time.perf_counter()
 run(int(sys.argv[3]))
@@ -351,7 +355,7 @@ def bench_phase1(rev=None, data="data"):
 
 
 def bench_finetune(rev=None, run="agents/walker", demos="data/demos/stickman_walk_side", updates=10):
-    """Seconds per GIIL-FT update (imitate.finetune_goal, one thread), with --against REV beside that commit's code."""
+    """Seconds per GIIL-FT update (goal_inference.finetune_goal, one thread), with --against REV beside that commit's code."""
     if not os.path.isdir(demos):
         raise SystemExit(f"bench.py --only finetune reads {demos}: collect it with `python collect.py --demos`")
     run, demos = os.path.abspath(run), os.path.abspath(demos)
@@ -395,10 +399,10 @@ def ot_seconds(B=256, T=16, M=500, K=10, D=64, repeat=3):
 
 
 def bench_ot():
-    """The OT reward (App. C): one call at imitate.py's cpu size and at a paper-like size, one thread."""
-    import imitate
+    """The OT reward (App. C): one call at GIIL-FT's cpu size and at a paper-like size, one thread."""
+    import goal_inference
 
-    cpu = imitate.ImitateConfig()
+    cpu = goal_inference.ImitateConfig()
     for B, M in ((cpu.starts, envs.EPISODE_STEPS), (256, envs.EPISODE_STEPS)):
         r = ot_seconds(B=B, T=15, M=M, K=10, D=512, repeat=2)
         print(f"OT reward      B={B} trajectories x T=15 against K=10 demos of M={M} frames (D=512): {1000 * r['whole_demo_s']:.0f} ms (windowed: {1000 * r['window_s']:.0f} ms)")

@@ -1,18 +1,21 @@
 """Eq. 1's two levels share one phase-1 run: its configs and models, and its data.
 
-Below train.py (phase 1), imitate.py (phase 2) and the baselines (genrl.py, aime_nob.py), which import it and never
+Below train.py (phase 1), goal_inference.py (phase 2) and the baselines (genrl.py, aime_nob.py), which import it and never
 each other:
   TrainConfig, COMPONENTS  the configs of a run, one dataclass per component, and each one's flag prefix
   build_models, load_run   a run's models, fresh or from runs/<name>/checkpoint.pt (rundir.run_checkpoint checks it)
   default_run_dir, resolve_run   where train.py writes a run, and which one phase 2 uses when none is named
   prepare_data             the run's D_body (collected first where incomplete) as training segments and held-out episodes
   body_segments, demo_folder     the run's D_body as segments, and a demo folder (collected first where missing)
+  export_agent             a trained run as a shipped agent, agents/<body>/checkpoint.pt: weights only (train.py --export)
 """
 import dataclasses
 import fcntl
 import json
 import os
 from typing import ClassVar
+
+import torch
 
 
 import collect
@@ -22,7 +25,7 @@ import goal_vae
 import policy
 import rundir
 import world_model
-from presets import PRESETS
+from presets import DATA, PRESETS
 from video_encoder import load_encoder
 
 
@@ -181,3 +184,34 @@ def demo_folder(cfgs, demo, view):
     finally:
         os.close(lock)
     return os.path.join(tc.data, "demos", f"{demo}_{view}")
+
+
+def export_agent(run_dir, out_dir):
+    """A trained run as a shipped agent: its models' float32 weights, config and shapes; no optimiser state or RNG.
+    Loadable by checkpoint.load_run like any run (float16 files of earlier exports are cast back to float32 on loading).
+    float32, not float16 (ours): the walker exported in float16 scored lower on the benchmark than its run, paired over
+    the same episodes (docs/ablations.md, Training length and export), and float32 fits in 7.5 MB."""
+    ckpt = rundir.load_checkpoint(os.path.join(run_dir, "checkpoint.pt"))
+    agent = {k: ckpt[k] for k in ("config", "step", "encoder", "obs_shape", "action_dim", "p_dim")}
+    # D_body is not shipped: the agent reads (and collects) demos in its preset's default data folder, wherever it was
+    # trained; that folder is kept as trained_data
+    train_cfg = agent["config"]["train"]
+    body = os.path.basename(os.path.normpath(out_dir))
+    if os.path.basename(os.path.dirname(os.path.normpath(out_dir))) == rundir.AGENTS and body in envs.BODIES and body != train_cfg["env"]:
+        raise ValueError(f"--export {out_dir}: {run_dir} trained a {train_cfg['env']} agent; export it to agents/{train_cfg['env']}")
+    agent["config"] = {**agent["config"], "train": {**train_cfg, "data": DATA[train_cfg["preset"]]}}
+    agent["trained_data"] = train_cfg["data"]
+    agent["models"] = ckpt["models"]
+    os.makedirs(out_dir, exist_ok=True)
+    # what phase 2 and the benchmark wrote for the agent replaced here would mix with the new agent's (tables.py matches
+    # rows by demo and settings, not by weights): moved, never deleted, to <out_dir>/previous_<n>/
+    made = [f for f in ("results.jsonl", "tables.md", "goal_reaching.json", "imitate") if os.path.exists(os.path.join(out_dir, f))]
+    if made:
+        old = os.path.join(out_dir, f"previous_{sum(f.startswith('previous_') for f in os.listdir(out_dir))}")
+        os.makedirs(old)
+        for f in made:
+            os.replace(os.path.join(out_dir, f), os.path.join(old, f))
+        print(f"moved the replaced agent's {', '.join(made)} to {old}")
+    path = os.path.join(out_dir, "checkpoint.pt")
+    rundir.atomic_write(path, lambda f: torch.save(agent, f))
+    return path

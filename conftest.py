@@ -1,3 +1,6 @@
+import argparse
+import dataclasses
+import importlib.util
 import os
 import sys
 
@@ -6,13 +9,16 @@ import pytest
 os.environ.setdefault("MUJOCO_GL", "egl")
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 
+import checkpoint  # noqa: E402
+import collect  # noqa: E402
+import genrl  # noqa: E402
+import presets  # noqa: E402
+import train  # noqa: E402
+
 
 @pytest.fixture(scope="session")
 def smoke_data(tmp_path_factory):
     """D_body of the walker and D_demo, smoke preset (a few 20-step episodes), in a temporary data folder."""
-    import collect
-    import presets
-
     root = str(tmp_path_factory.mktemp("data"))
     cfg = collect.CollectConfig(**presets.PRESETS["collect"]["smoke"])
     collect.collect_body("walker", cfg, root, workers=2)
@@ -23,8 +29,6 @@ def smoke_data(tmp_path_factory):
 @pytest.fixture(scope="session")
 def smoke_run(smoke_data, tmp_path_factory):
     """A phase-1 run of the walker with the smoke preset; returns its folder."""
-    import train
-
     cfgs = train.resolve_configs(train_args(data=smoke_data), "smoke")
     run_dir = str(tmp_path_factory.mktemp("runs") / "walker_smoke")
     train.train(cfgs, run_dir, resume=False)
@@ -33,11 +37,6 @@ def smoke_run(smoke_data, tmp_path_factory):
 
 def train_args(**given):
     """An argparse-like namespace for train.resolve_configs: 'component.field' -> value (None = not given)."""
-    import argparse
-    import dataclasses
-
-    import checkpoint
-
     ns = argparse.Namespace()
     for name, (cls, _) in checkpoint.COMPONENTS.items():
         for field in dataclasses.fields(cls):
@@ -47,8 +46,6 @@ def train_args(**given):
 
 def probe_script(name):
     """A script of probes/ (not a package) imported as a module, e.g. probe_script("ft_pairs")."""
-    import importlib.util
-
     path = os.path.join(os.path.dirname(os.path.abspath(__file__)), "probes", f"{name}.py")
     spec = importlib.util.spec_from_file_location(name, path)
     module = importlib.util.module_from_spec(spec)
@@ -59,8 +56,6 @@ def probe_script(name):
 def kill_at_evaluation(monkeypatch, n):
     """A baseline's n-th seed evaluation (genrl.evaluate_actor) raises KeyboardInterrupt, as a kill there would;
     returns the real function (to put back with monkeypatch.setattr)."""
-    import genrl
-
     evaluate_actor, calls = genrl.evaluate_actor, []
 
     def killed(*args):

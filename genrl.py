@@ -54,7 +54,7 @@ import envs
 import evaluate
 import policy
 import rundir
-from presets import PRESETS
+from presets import PRESETS, config_flags
 from video_encoder import check_same_encoder
 
 METHOD = "GenRL"
@@ -338,7 +338,7 @@ def cell_parser(description, cls, presets):
     parser.add_argument("--run", default=checkpoint.default_run_dir("walker", "cpu"), help="the phase-1 run (train.py) whose world model is used")
     parser.add_argument("--data", default=None, help="data folder with demos/ and D_body (default: the run's)")
     rundir.threads_flag(parser)
-    rundir.config_flags(parser, cls, choices={"preset": tuple(presets)})
+    config_flags(parser, cls, choices={"preset": tuple(presets)})
     return parser
 
 

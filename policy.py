@@ -12,7 +12,7 @@ Freezing: `freeze` sets requires_grad False on the world model, distance network
 rollout is built, so the actor loss gives their parameters no gradient at all (and no weight-gradient work is
 done for them); train.py keeps separate optimisers, so nothing but the actor moves on the actor loss.
 
-Phase 2 (Eq. 5, imitate.py) reuses rollout, lambda_return, actor_loss, critic_loss and freeze with the OT reward,
+Phase 2 (Eq. 5, goal_inference.py) reuses rollout, lambda_return, actor_loss, critic_loss and freeze with the OT reward,
 a critic V_ot(s) built with goal_dim = 0 (goal None), and the goal vector g as the only thing optimised by L_GI.
 Every optimiser step of the project is checked_step: refused, weights untouched, when a loss diverged.
 """

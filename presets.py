@@ -6,7 +6,12 @@ smoke  every command end to end in seconds, the cpu recipe at toy sizes (the tes
 paper  the paper's sizes and Eq. 4 as it is written (no cloning), for a GPU
 Each line below says where its values come from.
 """
+import dataclasses
+import inspect
+import io
 import os
+import re
+import tokenize
 
 PRESETS = {
     # phase 1 (train.py; checkpoint.COMPONENTS): TrainConfig, WorldModelConfig, GoalVAEConfig, DistanceConfig, ActorCriticConfig
@@ -41,7 +46,7 @@ PRESETS = {
         "cpu": {},
         "paper": dict(explore_episodes=2000, task_episodes=1000),  # the paper's D_body: ~2000 exploration, 1000 per task
     },
-    # phase 2 (imitate.py): ImitateConfig, and ot_reward.OTConfig
+    # phase 2 (goal_inference.py): ImitateConfig, and ot_reward.OTConfig
     "imitate": {
         "smoke": dict(steps=3, starts=8, seeds=2, eval_episodes=1, eval_steps=10),  # ours: toy
         "cpu": {},
@@ -58,3 +63,34 @@ PRESETS = {
 # Where each preset's datasets go by default (--data): the smoke preset's 20-step episodes never share a folder with the
 # 500-step ones of the others (cpu and paper episodes are alike: paper's D_body extends cpu's)
 DATA = {"smoke": PRESETS["train"]["smoke"]["data"], "cpu": "data", "paper": "data"}
+
+
+def field_comments(cls):
+    """{field: its comment in the source} of a dataclass: the comment lines right above the field and the one after it,
+    which say what the field is and where its value comes from (the paper, Dreamer, GenRL, ours)."""
+    lines = inspect.getsource(cls).splitlines()
+    comments = {tok.start[0]: (tok.start[1], tok.string.lstrip("#").strip())
+                for tok in tokenize.generate_tokens(io.StringIO("\n".join(lines) + "\n").readline) if tok.type == tokenize.COMMENT}
+    names, out, above = {f.name for f in dataclasses.fields(cls)}, {}, []
+    for number, line in enumerate(lines, 1):
+        indent = len(line) - len(line.lstrip())
+        if number in comments and comments[number][0] == indent:  # a comment line of its own: about the field below
+            above.append(comments[number][1])
+            continue
+        name = re.match(r"\s+(\w+)\s*:", line)
+        if name and name.group(1) in names:
+            out[name.group(1)] = " ".join(above + ([comments[number][1]] if number in comments else []))
+        above = []
+    return out
+
+
+def config_flags(parser, cls, prefix="", dest="", choices=None):
+    """One flag --<prefix><field> per field of the dataclass cls, stored as <dest><field>, default None ('not given': the
+    preset's value applies); its help is the field's source comment. choices: {field: the values allowed}."""
+    comments, choices = field_comments(cls), choices or {}
+    for field in dataclasses.fields(cls):
+        kind = type(field.default)
+        parser.add_argument("--" + prefix + field.name.replace("_", "-"), dest=dest + field.name, type=kind, default=None,
+                            choices=choices.get(field.name), metavar=None if field.name in choices else kind.__name__.upper(),
+                            help=f"{comments.get(field.name) or cls.__name__ + '.' + field.name} (default {field.default!r}, or the "
+                                 f"preset's)".replace("%", "%%"))

@@ -13,7 +13,6 @@ append_jsonl  one row, on a line of its own after such a cut line
 load_results, finished   phase 2's result rows (runs/<name>/results.jsonl) and which of them count for a cell
 fast_matmul   fp32 matmuls through oneDNN where that is faster and still fp32 (checked on this CPU)
 threads_flag  --threads of imitate.py, genrl.py and aime_nob.py: this process's torch threads, not the run's training ones
-export_agent  a trained run as a shipped agent, agents/<body>/checkpoint.pt: weights only (train.py --export)
 atomic_write  every file the project writes, videos too: a temporary file per writer, renamed onto the path (never half a file)
 load_checkpoint, plain, generator   checkpoints that load with torch.load(weights_only=True), and only so
 weights_id    the identity of a checkpoint's agent, which every result row carries
@@ -23,8 +22,6 @@ import dataclasses
 import fcntl
 import glob
 import hashlib
-import inspect
-import io
 import json
 import math
 import os
@@ -32,13 +29,11 @@ import pickle
 import re
 import signal
 import sys
-import tokenize
 
 import numpy as np
 import torch
 
 import envs
-from presets import DATA
 
 
 def check_flags(config, prefix=""):
@@ -167,7 +162,7 @@ def latest(rows_in):
 
 def finished(rows, demo, view, returns, configs, weights):
     """A cell's rows that count: made by the agent `weights` (weights_id) with the demos now on disk (their
-    returns) and, for a method of `configs`, with the settings configs[method] (imitate.result_config)."""
+    returns) and, for a method of `configs`, with the settings configs[method] (goal_inference.result_config)."""
     return [r for r in rows if r["demo"] == demo and r["view"] == view and r.get("demo_returns") == returns
             and r.get("weights") == weights and r["method"] in configs and r.get("config") == configs[r["method"]]]
 
@@ -233,37 +228,6 @@ def fast_matmul():
     return error <= 1e-5
 
 
-def field_comments(cls):
-    """{field: its comment in the source} of a dataclass: the comment lines right above the field and the one after it,
-    which say what the field is and where its value comes from (the paper, Dreamer, GenRL, ours)."""
-    lines = inspect.getsource(cls).splitlines()
-    comments = {tok.start[0]: (tok.start[1], tok.string.lstrip("#").strip())
-                for tok in tokenize.generate_tokens(io.StringIO("\n".join(lines) + "\n").readline) if tok.type == tokenize.COMMENT}
-    names, out, above = {f.name for f in dataclasses.fields(cls)}, {}, []
-    for number, line in enumerate(lines, 1):
-        indent = len(line) - len(line.lstrip())
-        if number in comments and comments[number][0] == indent:  # a comment line of its own: about the field below
-            above.append(comments[number][1])
-            continue
-        name = re.match(r"\s+(\w+)\s*:", line)
-        if name and name.group(1) in names:
-            out[name.group(1)] = " ".join(above + ([comments[number][1]] if number in comments else []))
-        above = []
-    return out
-
-
-def config_flags(parser, cls, prefix="", dest="", choices=None):
-    """One flag --<prefix><field> per field of the dataclass cls, stored as <dest><field>, default None ('not given': the
-    preset's value applies); its help is the field's source comment. choices: {field: the values allowed}."""
-    comments, choices = field_comments(cls), choices or {}
-    for field in dataclasses.fields(cls):
-        kind = type(field.default)
-        parser.add_argument("--" + prefix + field.name.replace("_", "-"), dest=dest + field.name, type=kind, default=None,
-                            choices=choices.get(field.name), metavar=None if field.name in choices else kind.__name__.upper(),
-                            help=f"{comments.get(field.name) or cls.__name__ + '.' + field.name} (default {field.default!r}, or the "
-                                 f"preset's)".replace("%", "%%"))
-
-
 def threads_flag(parser):
     """--threads: torch CPU threads of a phase-2 or baseline process, default 1. Not the phase-1 run's --threads: a run
     trained alone with 2 put 2 threads in each of two table shards on two cores, and libgomp's spinning workers then
@@ -278,7 +242,7 @@ def use_threads(threads):
     torch.set_num_threads(threads)
 
 
-AGENTS = "agents"  # the shipped phase-1 agents: agents/<body>/checkpoint.pt, weights only (export_agent)
+AGENTS = "agents"  # the shipped phase-1 agents: agents/<body>/checkpoint.pt, weights only (checkpoint.export_agent)
 
 
 RUN_NAME = re.compile(r"(?P<env>[a-z]+)_(?P<obs>state|pixels)_(?P<preset>[a-z]+)_s(?P<seed>\d+)")  # checkpoint.default_run_dir's
@@ -425,34 +389,3 @@ def generator(state):
     rng = np.random.Generator(getattr(np.random, state["bit_generator"])())
     rng.bit_generator.state = state
     return rng
-
-
-def export_agent(run_dir, out_dir):
-    """A trained run as a shipped agent: its models' float32 weights, config and shapes; no optimiser state or RNG.
-    Loadable by checkpoint.load_run like any run (float16 files of earlier exports are cast back to float32 on loading).
-    float32, not float16 (ours): the walker exported in float16 scored lower on the benchmark than its run, paired over
-    the same episodes (docs/ablations.md, Training length and export), and float32 fits in 7.5 MB."""
-    ckpt = load_checkpoint(os.path.join(run_dir, "checkpoint.pt"))
-    agent = {k: ckpt[k] for k in ("config", "step", "encoder", "obs_shape", "action_dim", "p_dim")}
-    # D_body is not shipped: the agent reads (and collects) demos in its preset's default data folder, wherever it was
-    # trained; that folder is kept as trained_data
-    train_cfg = agent["config"]["train"]
-    body = os.path.basename(os.path.normpath(out_dir))
-    if os.path.basename(os.path.dirname(os.path.normpath(out_dir))) == AGENTS and body in envs.BODIES and body != train_cfg["env"]:
-        raise ValueError(f"--export {out_dir}: {run_dir} trained a {train_cfg['env']} agent; export it to agents/{train_cfg['env']}")
-    agent["config"] = {**agent["config"], "train": {**train_cfg, "data": DATA[train_cfg["preset"]]}}
-    agent["trained_data"] = train_cfg["data"]
-    agent["models"] = ckpt["models"]
-    os.makedirs(out_dir, exist_ok=True)
-    # what phase 2 and the benchmark wrote for the agent replaced here would mix with the new agent's (tables.py matches
-    # rows by demo and settings, not by weights): moved, never deleted, to <out_dir>/previous_<n>/
-    made = [f for f in ("results.jsonl", "tables.md", "goal_reaching.json", "imitate") if os.path.exists(os.path.join(out_dir, f))]
-    if made:
-        old = os.path.join(out_dir, f"previous_{sum(f.startswith('previous_') for f in os.listdir(out_dir))}")
-        os.makedirs(old)
-        for f in made:
-            os.replace(os.path.join(out_dir, f), os.path.join(old, f))
-        print(f"moved the replaced agent's {', '.join(made)} to {old}")
-    path = os.path.join(out_dir, "checkpoint.pt")
-    atomic_write(path, lambda f: torch.save(agent, f))
-    return path

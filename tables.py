@@ -1,5 +1,5 @@
 """Tables 1-2 and 4-11 of the paper for one agent: every setting (SE/CE x SV/CV) x task, GIIL-ZS and the goal searches
-(imitate.SEARCHES: GIIL-FT, GIIL-online), and with `--methods` the baselines GenRL and AIME-NoB, ours beside the
+(goal_inference.SEARCHES: GIIL-FT, GIIL-online), and with `--methods` the baselines GenRL and AIME-NoB, ours beside the
 paper's. The table harness: it runs the cells missing from runs/<name>/results.jsonl (sharded over processes, a lock
 per cell, resumed from the rows), and writes their markdown to runs/<name>/tables.md:
 
@@ -27,7 +27,7 @@ import collect
 import envs
 import evaluate
 import genrl
-import imitate
+import goal_inference
 import online
 import rundir
 from envs import SETTINGS
@@ -72,8 +72,8 @@ def markdown_tables(agent, rows):
     def cell(scores):
         return f"{np.mean(scores):.1f} +- {evaluate.stderr(scores):.1f}" if scores else "-"
 
-    methods = SHOWN + tuple(m for m in imitate.METHODS + tuple(BASELINES.values()) if m not in SHOWN and any(r["method"] == m for r in rows))
-    paired = [m for m in methods if m in imitate.SEARCHES]  # each minus GIIL-ZS (demo 0), seed by seed
+    methods = SHOWN + tuple(m for m in goal_inference.METHODS + tuple(BASELINES.values()) if m not in SHOWN and any(r["method"] == m for r in rows))
+    paired = [m for m in methods if m in goal_inference.SEARCHES]  # each minus GIIL-ZS (demo 0), seed by seed
     paper_methods = [m for m in methods if m in PAPER_METHODS and agent in PAPER]  # the paper's columns of the methods shown
     out = []
     for task in ("all",) + envs.TASKS:
@@ -130,7 +130,7 @@ def curve_points(rows, settings):
     None. A baseline's rows at a budget are those whose config has that budget (a run of it, or an --eval-at point)."""
     out = {}
     for r in rows:
-        if r["setting"] not in settings or r["method"] not in imitate.METHODS + tuple(BASELINES.values()):
+        if r["setting"] not in settings or r["method"] not in goal_inference.METHODS + tuple(BASELINES.values()):
             continue
         budget = r["config"][BUDGET[r["method"]][0]] if r["method"] in BUDGET else None
         out.setdefault(r["method"], {}).setdefault(budget, []).append(((r["demo"], r["view"]), r["seed"], r["score"], r["time"]))
@@ -208,14 +208,14 @@ def baseline_configs(preset, budgets=None):
 
 
 def run_table(run_dir, ic, oc=None, settings=SETTINGS, shard=(0, 1), methods=("finetune",), budgets=None, demos_per_cell=10):
-    """Every setting x task for this agent: GIIL-ZS and the goal searches whose flag is in `methods` (imitate.SEARCHES),
+    """Every setting x task for this agent: GIIL-ZS and the goal searches whose flag is in `methods` (goal_inference.SEARCHES),
     and the baselines named there (BASELINES' keys, each with its preset of ic.preset, or at `budgets`); runs only what
     is missing from results.jsonl, then writes the tables of every finished cell. `settings` limits which settings run
     now; shard (i, N) runs only the cells i, i + N, ... of those (tables' order: N processes share one table, rows
     appended under a lock and told apart by method and seed). A row counts only if it was made with the demos now on
-    disk (their returns), with the settings asked for (imitate.result_config) and by this checkpoint's weights:
+    disk (their returns), with the settings asked for (goal_inference.result_config) and by this checkpoint's weights:
     regenerating D_demo, changing a setting or retraining the agent runs the cells again instead of mixing results."""
-    known = [s.flag for s in imitate.SEARCHES.values()] + list(BASELINES)
+    known = [s.flag for s in goal_inference.SEARCHES.values()] + list(BASELINES)
     unknown = [m for m in methods if m not in known]
     if unknown:
         raise ValueError(f"--methods {','.join(unknown)}: choose from {', '.join(known)}")
@@ -225,8 +225,8 @@ def run_table(run_dir, ic, oc=None, settings=SETTINGS, shard=(0, 1), methods=("f
     rundir.not_training(run_dir)
     cfgs, _, ckpt = checkpoint.load_run(run_dir)
     agent, shown, weights = cfgs["train"].env, [], rundir.weights_id(ckpt)
-    configs = {**{m: imitate.result_config(ic, m, oc) for m in imitate.METHODS}, **{m: b[2] for m, b in baselines.items()}}
-    searches = [m for m, s in imitate.SEARCHES.items() if s.flag in methods]
+    configs = {**{m: goal_inference.result_config(ic, m, oc) for m in goal_inference.METHODS}, **{m: b[2] for m, b in baselines.items()}}
+    searches = [m for m, s in goal_inference.SEARCHES.items() if s.flag in methods]
     # the shards split the cells of `settings`, so that none is left idle; a cell left out runs nothing, its finished rows still count
     runs_here = [cell for cell in envs.cells(agent) if cell[1] in settings][shard[0]::shard[1]]
     for task, where in envs.cells(agent):
@@ -245,10 +245,10 @@ def run_table(run_dir, ic, oc=None, settings=SETTINGS, shard=(0, 1), methods=("f
             done = {(r["method"], r["seed"]) for r in rundir.finished(rundir.load_results(run_dir), demo, view, returns, configs, weights)}
             count = lambda m: sum(method == m for method, _ in done)
             # only the seeds missing (a cell cut off goes on where it was); GIIL-online's candidates are GIIL-ZS's goals
-            missing = [m for m in searches if min(count(m), count("GIIL-ZS (demo 0)")) < imitate.SEARCHES[m].seeds(ic, oc)]
+            missing = [m for m in searches if min(count(m), count("GIIL-ZS (demo 0)")) < goal_inference.SEARCHES[m].seeds(ic, oc)]
             zero_shot = bool(searches) and count("GIIL-ZS") < demos_per_cell
             if (zero_shot or missing) and run_now:
-                imitate.imitate(run_dir, demo, view, ic, missing, oc, zero_shot, done)
+                goal_inference.imitate(run_dir, demo, view, ic, missing, oc, zero_shot, done)
             for name, method in BASELINES.items():
                 module, cfg, _ = baselines[method]
                 if count(method) < cfg.seeds and run_now and name in methods:
@@ -294,9 +294,9 @@ def main():
     parser.add_argument("--min-seeds", type=int, default=3, help="with --curves: a baseline's cell counts with this many seeds at each budget")
     parser.add_argument("--png", help="with --curves: also draw the figure here")
     rundir.threads_flag(parser)
-    imitate.config_flags(parser)
+    goal_inference.config_flags(parser)
     args = parser.parse_args()
-    ic, given = imitate.parse_config(args)
+    ic, given = goal_inference.parse_config(args)
     mode = "--run" if args.run or args.env else "--table" if args.table else "--curves"
     allowed = {"--run": ("methods", "settings", "shard", "budgets", "threads"), "--table": ("budgets",), "--curves": ("settings", "min_seeds", "png")}
     extra = [f for f in ("methods", "settings", "shard", "budgets", "min_seeds", "png", "threads")

@@ -35,7 +35,7 @@ import fidelity
 import policy
 import rundir
 from checkpoint import COMPONENTS, TrainConfig, default_run_dir, load_run, prepare_data
-from presets import PRESETS
+from presets import PRESETS, config_flags
 from video_encoder import check_same_encoder
 
 
@@ -46,9 +46,9 @@ LR_FLAGS = {"world_model": ("wm", "lr"), "goal_vae": ("goal", "lr"), "dist_net":
 
 
 def add_config_flags(parser):
-    """One flag per field of each component's config (rundir.config_flags: its help the field's comment)."""
+    """One flag per field of each component's config (presets.config_flags: its help the field's comment)."""
     for name, (cls, prefix) in COMPONENTS.items():
-        rundir.config_flags(parser, cls, prefix, f"{name}.", {"preset": tuple(PRESETS["train"])} if name == "train" else None)
+        config_flags(parser, cls, prefix, f"{name}.", {"preset": tuple(PRESETS["train"])} if name == "train" else None)
 
 
 def resolve_configs(args, preset):
@@ -129,7 +129,7 @@ def resume_from(ckpt_path, resume, cfgs, models, optims, encoder, device, rng):
     for name, model in models.items():
         model.load_state_dict(ckpt["models"][name])
     models["actor"].load_state_dict(ckpt.get("actor_unpolished", ckpt["models"]["actor"]))  # training goes on from the unpolished actor
-    if "optims" not in ckpt:  # a shipped agent (rundir.export_agent: weights only) copied into run_dir: trained on from its
+    if "optims" not in ckpt:  # a shipped agent (checkpoint.export_agent: weights only) copied into run_dir: trained on from its
         # weights (its polished actor) with fresh Adam moments and RNGs seeded from (seed, update) (ours; training longer
         # than it was shipped, docs/ablations.md)
         print(f"resumed {ckpt_path} at update {ckpt['step']} from its weights alone (an exported agent): fresh optimisers")
@@ -283,7 +283,7 @@ def main():
     if (args.export or args.evaluate) and (args.resume or args.allow_cpu):
         parser.error(f"--{'resume' if args.resume else 'allow-cpu'} is for training: it does nothing with --export or --evaluate")
     if args.export:
-        print("wrote", rundir.export_agent(run_dir, args.export))
+        print("wrote", checkpoint.export_agent(run_dir, args.export))
     elif args.evaluate:
         device = "cuda" if torch.cuda.is_available() else "cpu"
         run_cfgs, models, _ = load_run(run_dir, device, getattr(args, "train.env"))

@@ -1,4 +1,4 @@
-"""imitate.py: GIIL-ZS / GIIL-FT end to end (smoke), Eq. 5's gradient (g only, through V_ot), bad input."""
+"""goal_inference.py and imitate.py: GIIL-ZS / GIIL-FT end to end (smoke), Eq. 5's gradient (g only, through V_ot), bad input."""
 import dataclasses
 import json
 import os
@@ -9,15 +9,15 @@ import pytest
 import torch
 
 import checkpoint
-import imitate
+import goal_inference
 import ot_reward
 import presets
 
-SMOKE = imitate.ImitateConfig(**presets.PRESETS["imitate"]["smoke"])
+SMOKE = goal_inference.ImitateConfig(**presets.PRESETS["imitate"]["smoke"])
 
 
 def test_zero_shot_and_finetune_end_to_end(smoke_run):
-    rows = imitate.imitate(smoke_run, "stickman_run", "diagonal", SMOKE, ["GIIL-FT"])
+    rows = goal_inference.imitate(smoke_run, "stickman_run", "diagonal", SMOKE, ["GIIL-FT"])
     zs = [r for r in rows if r["method"] == "GIIL-ZS"]
     ft = [r for r in rows if r["method"] == "GIIL-FT"]
     zs0 = [r for r in rows if r["method"] == "GIIL-ZS (demo 0)"]
@@ -43,10 +43,10 @@ def test_goal_gets_L_GI_and_psi_nothing(smoke_run):
     """Eq. 5 moves g and never psi, the world model or the goal decoder."""
     cfgs, models, _ = checkpoint.load_run(smoke_run)
     feat_dim = models["world_model"].feat_dim
-    critic_ot, slow_ot = imitate.policy.make_critics(cfgs["ac"], feat_dim, 0)
+    critic_ot, slow_ot = goal_inference.policy.make_critics(cfgs["ac"], feat_dim, 0)
     goal = torch.nn.Parameter(torch.randn(feat_dim))
     demo_p = torch.nn.functional.normalize(torch.randn(2, 12, models["goal_vae"].feat_dim), dim=-1)
-    gi, ot_loss, _ = imitate.goal_inference_loss(models, critic_ot, slow_ot, goal, posterior_starts(models, cfgs), demo_p, cfgs,
+    gi, ot_loss, _ = goal_inference.goal_inference_loss(models, critic_ot, slow_ot, goal, posterior_starts(models, cfgs), demo_p, cfgs,
                                                  ot_reward.OTConfig(iters=5))
     gi.backward()
     assert goal.grad is not None and goal.grad.abs().sum() > 0
@@ -61,19 +61,19 @@ def test_a_new_goal_search_is_one_function_and_one_entry(smoke_run, tmp_path, mo
     run = str(tmp_path / "run")
     shutil.copytree(smoke_run, run)
     last_demo = lambda cell, seed: (cell.goals[-1], len(cell.goals) - 1, {"picked": seed})
-    entry = imitate.GoalSearch(last_demo, lambda ic, oc: 2, lambda ic, oc: {"eval_steps": ic.eval_steps, "last": True}, "last")
-    monkeypatch.setitem(imitate.SEARCHES, "last demo", entry)
-    monkeypatch.setattr(imitate, "METHODS", imitate.METHODS + ("last demo",))
-    rows = imitate.imitate(run, "walker_walk", "side", SMOKE, ["last demo"], zero_shot=False)
+    entry = goal_inference.GoalSearch(last_demo, lambda ic, oc: 2, lambda ic, oc: {"eval_steps": ic.eval_steps, "last": True}, "last")
+    monkeypatch.setitem(goal_inference.SEARCHES, "last demo", entry)
+    monkeypatch.setattr(goal_inference, "METHODS", goal_inference.METHODS + ("last demo",))
+    rows = goal_inference.imitate(run, "walker_walk", "side", SMOKE, ["last demo"], zero_shot=False)
     assert [(r["method"], r["seed"]) for r in rows] == [("GIIL-ZS (demo 0)", 0), ("last demo", 0), ("GIIL-ZS (demo 0)", 1), ("last demo", 1)]
     assert rows[1]["config"] == {"eval_steps": SMOKE.eval_steps, "last": True} and rows[3]["picked"] == 1
-    assert imitate.imitate(run, "walker_walk", "side", SMOKE, ["last demo"], zero_shot=False) == []
+    assert goal_inference.imitate(run, "walker_walk", "side", SMOKE, ["last demo"], zero_shot=False) == []
     assert "last demo (ours)" in tables.markdown_tables("walker", rows) and "last demo - ZS (demo 0), paired" in tables.markdown_tables("walker", rows)
 
 
 def test_unknown_demo_lists_the_valid_names(smoke_run):
     with pytest.raises(ValueError, match=r"unknown demo 'stickman_fly': valid demos are walker_stand, .*, stickman_jump$"):
-        imitate.imitate(smoke_run, "stickman_fly", "side", SMOKE)
+        goal_inference.imitate(smoke_run, "stickman_fly", "side", SMOKE)
 
 
 def test_missing_demos_are_collected_first(smoke_run, smoke_data, tmp_path):
@@ -85,7 +85,7 @@ def test_missing_demos_are_collected_first(smoke_run, smoke_data, tmp_path):
     ckpt = torch.load(os.path.join(run, "checkpoint.pt"), weights_only=True)
     ckpt["config"]["train"].update(data=data, preset="smoke")
     torch.save(ckpt, os.path.join(run, "checkpoint.pt"))
-    rows = imitate.imitate(run, "stickman_run", "side", SMOKE, ["GIIL-FT"])
+    rows = goal_inference.imitate(run, "stickman_run", "side", SMOKE, ["GIIL-FT"])
     assert [r["method"] for r in rows] == ["GIIL-ZS"] * 2 + ["GIIL-ZS (demo 0)", "GIIL-FT"] * SMOKE.seeds
     assert sorted(os.listdir(os.path.join(data, "demos"))) == ["stickman_run_diagonal", "stickman_run_side"]
     assert sorted(os.listdir(os.path.join(data, "demos", "stickman_run_side"))) == ["00.npz", "01.npz"]
@@ -105,7 +105,7 @@ def test_default_run_follows_preset_and_agent(tmp_path):
 
 def test_no_checkpoint_names_the_train_command(tmp_path):
     with pytest.raises(FileNotFoundError, match="python train.py"):
-        imitate.imitate(str(tmp_path), "walker_run", "side", SMOKE)
+        goal_inference.imitate(str(tmp_path), "walker_run", "side", SMOKE)
 
 
 def test_demo_features_from_another_encoder_or_nan_are_errors(smoke_run, smoke_data, tmp_path):
@@ -120,11 +120,11 @@ def test_demo_features_from_another_encoder_or_nan_are_errors(smoke_run, smoke_d
     episode = dict(np.load(path))
     np.savez(path, **dict(episode, encoder="torchscript:other.pt:0123456789ab"))
     with pytest.raises(ValueError, match="other.pt"):
-        imitate.imitate(run, "walker_walk", "side", SMOKE)
+        goal_inference.imitate(run, "walker_walk", "side", SMOKE)
     episode["p"][3] = np.nan
     np.savez(path, **episode)
     with pytest.raises(ValueError, match=r"01.npz: key 'p' must be a finite"):
-        imitate.imitate(run, "walker_walk", "side", SMOKE)
+        goal_inference.imitate(run, "walker_walk", "side", SMOKE)
 
 
 def test_command_line(smoke_run, tmp_path):
@@ -149,7 +149,7 @@ def test_goal_searches_leave_the_policy_as_pretrained(smoke_run, tmp_path, monke
     before = {k: {n: t.clone() for n, t in m.state_dict().items()} for k, m in checkpoint.load_run(run)[1].items()}
     loaded, load_run = [], checkpoint.load_run
     monkeypatch.setattr(checkpoint, "load_run", lambda *args: loaded.append(load_run(*args)) or loaded[-1])
-    imitate.imitate(run, "walker_run", "side", SMOKE, ["GIIL-FT"], zero_shot=False)
+    goal_inference.imitate(run, "walker_run", "side", SMOKE, ["GIIL-FT"], zero_shot=False)
     assert all(torch.equal(before[k][n], t) for k, m in loaded[0][1].items() for n, t in m.state_dict().items())
 
 
@@ -162,13 +162,13 @@ def test_goal_gradient_flows_through_v_ot_only(smoke_run):
     demo_p = torch.nn.functional.normalize(torch.randn(2, 12, models["goal_vae"].feat_dim), dim=-1)
     grads = []
     for constant in (True, False):
-        critic_ot, slow_ot = imitate.policy.make_critics(cfgs["ac"], feat_dim, 0)
+        critic_ot, slow_ot = goal_inference.policy.make_critics(cfgs["ac"], feat_dim, 0)
         if constant:
             for p in slow_ot.parameters():
                 p.data.zero_()  # V_ot(s) = 0 everywhere
         goal = torch.nn.Parameter(torch.randn(feat_dim))
         torch.manual_seed(0)
-        gi = imitate.goal_inference_loss(models, critic_ot, slow_ot, goal, start, demo_p, cfgs, ot_reward.OTConfig(iters=5))[0]
+        gi = goal_inference.goal_inference_loss(models, critic_ot, slow_ot, goal, start, demo_p, cfgs, ot_reward.OTConfig(iters=5))[0]
         gi.backward()
         grads.append(goal.grad.abs().sum().item())
     assert grads[0] == 0 and grads[1] > 0
@@ -180,7 +180,7 @@ def test_zero_shot_demo_0_is_finetuning_that_never_moves_the_goal(smoke_run, tmp
     run = str(tmp_path / "run")
     shutil.copytree(smoke_run, run)
     ic = dataclasses.replace(SMOKE, eval_episodes=2, goal_lr=1e-12)  # each Adam update moves g by ~1e-12: nothing
-    rows = imitate.imitate(run, "walker_walk", "side", ic, ["GIIL-FT"], zero_shot=False)
+    rows = goal_inference.imitate(run, "walker_walk", "side", ic, ["GIIL-FT"], zero_shot=False)
     zs0 = [r["episode_scores"] for r in rows if r["method"] == "GIIL-ZS (demo 0)"]
     ft = [r["episode_scores"] for r in rows if r["method"] == "GIIL-FT"]
     assert len(zs0) == SMOKE.seeds and np.allclose(zs0, ft, atol=1e-6)

@@ -7,14 +7,14 @@ import torch
 
 import checkpoint
 import envs
-import imitate
+import goal_inference
 import online
 import presets
 import rundir
 import tables
 import video_encoder
 
-SMOKE = imitate.ImitateConfig(**presets.PRESETS["imitate"]["smoke"])
+SMOKE = goal_inference.ImitateConfig(**presets.PRESETS["imitate"]["smoke"])
 
 
 def test_successive_halving_finds_the_best_candidate_under_noise():
@@ -57,7 +57,7 @@ def test_refinement_never_reads_the_task_reward(smoke_run):
     demo_p = np.random.default_rng(0).standard_normal((2, 11, models["goal_vae"].feat_dim)).astype(np.float32)
     encoder = video_encoder.load_encoder("default")
     cfg = online.OnlineConfig(schedule=((3, 1), (2, 1)))
-    ot_cfg = imitate.ot_reward.OTConfig(iters=5)
+    ot_cfg = goal_inference.ot_reward.OTConfig(iters=5)
     rng = np.random.default_rng(0)
     plain = online.refine_goal(models, cfgs, lambda: envs.make_env("walker", "run"), goals, demo_p, cfg, 0, encoder, 10, ot_cfg)
     poisoned = online.refine_goal(models, cfgs, lambda: NoRewardEnv(envs.make_env("walker", "run"), rng), goals, demo_p, cfg, 0, encoder, 10, ot_cfg)
@@ -66,17 +66,17 @@ def test_refinement_never_reads_the_task_reward(smoke_run):
 
 def test_online_end_to_end_pairs_with_its_zero_shot_start(smoke_run):
     oc = online.OnlineConfig(**presets.PRESETS["online"]["smoke"])
-    rows = imitate.imitate(smoke_run, "stickman_walk", "side", SMOKE, ["GIIL-online"], oc, zero_shot=False)
+    rows = goal_inference.imitate(smoke_run, "stickman_walk", "side", SMOKE, ["GIIL-online"], oc, zero_shot=False)
     on = [r for r in rows if r["method"] == "GIIL-online"]
     zs0 = [r for r in rows if r["method"] == "GIIL-ZS (demo 0)"]
     assert len(on) == len(zs0) == oc.seeds
     assert on[0]["env_steps"] == online.budget(oc, 2) * SMOKE.eval_steps and on[0]["chosen_demo"] in (0, 1)
     stored = [r for r in rundir.read_jsonl(os.path.join(smoke_run, "results.jsonl")) if r["method"] == "GIIL-online"]
-    assert stored[-1]["config"] == imitate.result_config(SMOKE, "GIIL-online", oc) and "schedule" in stored[-1]["config"]
+    assert stored[-1]["config"] == goal_inference.result_config(SMOKE, "GIIL-online", oc) and "schedule" in stored[-1]["config"]
     text = tables.markdown_tables("walker", rows)
     assert "GIIL-online (ours)" in text and "online - ZS (demo 0), paired" in text
     # the same command again finds its rows finished (as read back from JSON) and runs nothing
-    assert imitate.imitate(smoke_run, "stickman_walk", "side", SMOKE, ["GIIL-online"], oc, zero_shot=False) == []
+    assert goal_inference.imitate(smoke_run, "stickman_walk", "side", SMOKE, ["GIIL-online"], oc, zero_shot=False) == []
 
 
 def test_posterior_goals_start_at_the_zero_shot_goal(smoke_run):
@@ -92,7 +92,7 @@ def test_posterior_goals_start_at_the_zero_shot_goal(smoke_run):
 def test_finetune_and_online_share_their_zero_shot_start(smoke_run):
     """One command with both: GIIL-ZS (demo 0) once per seed, not once per method."""
     oc = online.OnlineConfig(**presets.PRESETS["online"]["smoke"])
-    rows = imitate.imitate(smoke_run, "walker_jump", "diagonal", SMOKE, ["GIIL-FT", "GIIL-online"], oc, zero_shot=False)
+    rows = goal_inference.imitate(smoke_run, "walker_jump", "diagonal", SMOKE, ["GIIL-FT", "GIIL-online"], oc, zero_shot=False)
     zs0 = [r["seed"] for r in rows if r["method"] == "GIIL-ZS (demo 0)"]
     assert sorted(zs0) == list(range(max(SMOKE.seeds, oc.seeds)))
     assert sum(r["method"] == "GIIL-online" for r in rows) == oc.seeds

@@ -19,6 +19,7 @@ import collect
 import evaluate
 import experts
 import goal_vae
+import goal_inference
 import imitate
 import presets
 import rundir
@@ -28,7 +29,7 @@ from conftest import train_args
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 TINY = dict(steps=12, seed_steps=4, batch=8, hidden=8, snapshot_every=6, eval_every=10_000, checkpoint_minutes=0.0, final_episodes=1)
-SMOKE_IMITATE = imitate.ImitateConfig(**presets.PRESETS["imitate"]["smoke"])
+SMOKE_IMITATE = goal_inference.ImitateConfig(**presets.PRESETS["imitate"]["smoke"])
 # train.py run as a script that SIGKILLs itself while writing its second checkpoint (update 6 of the smoke preset),
 # leaving a half-written temporary file, metrics rows past its checkpoint and its lock behind
 KILLED_TRAIN = """
@@ -146,7 +147,7 @@ def test_demos_of_two_lengths_are_refused(smoke_run, smoke_data, tmp_path):
     collect.save_episode(path, {k: v[:11] if v.ndim else v for k, v in episode.items()})
     run = copy_run(smoke_run, tmp_path, data)
     with pytest.raises(ValueError, match=r"walker_run_side mixes episodes of 21 and 11 steps .*00.npz.*01.npz"):
-        imitate.imitate(run, "walker_run", "side", SMOKE_IMITATE, ["GIIL-FT"])
+        goal_inference.imitate(run, "walker_run", "side", SMOKE_IMITATE, ["GIIL-FT"])
 
 
 def test_collection_into_another_presets_folder_is_refused(smoke_data, tmp_path):
@@ -198,15 +199,15 @@ def test_divergence_and_nan_gradient_stop_without_saving(smoke_run, smoke_data, 
 
 def test_phase_2_divergence_stops_before_writing_a_result(smoke_run, tmp_path, monkeypatch):
     run = copy_run(smoke_run, tmp_path)
-    original = imitate.goal_inference_loss
+    original = goal_inference.goal_inference_loss
 
     def nan_loss(*args, **kwargs):
         loss, critic_loss, metrics = original(*args, **kwargs)
         return loss * float("nan"), critic_loss, metrics
 
-    monkeypatch.setattr(imitate, "goal_inference_loss", nan_loss)
+    monkeypatch.setattr(goal_inference, "goal_inference_loss", nan_loss)
     with pytest.raises(ValueError, match=r"GIIL-FT seed 0: Eq. 5 L_GI is nan at update 0: stopped"):
-        imitate.imitate(run, "walker_run", "side", SMOKE_IMITATE, ["GIIL-FT"], zero_shot=False)
+        goal_inference.imitate(run, "walker_run", "side", SMOKE_IMITATE, ["GIIL-FT"], zero_shot=False)
     rows = rundir.read_jsonl(os.path.join(run, "results.jsonl"))
     assert [r["method"] for r in rows] == ["GIIL-ZS (demo 0)"]  # its zero-shot evaluation, written before; no GIIL-FT row
 
@@ -233,9 +234,9 @@ def test_train_flags_out_of_range(given, message, smoke_data, tmp_path):
 ])
 def test_imitate_flags_out_of_range(given, message, smoke_run, tmp_path):
     run = copy_run(smoke_run, tmp_path)
-    ic = imitate.ImitateConfig(**{**presets.PRESETS["imitate"]["smoke"], **given})
+    ic = goal_inference.ImitateConfig(**{**presets.PRESETS["imitate"]["smoke"], **given})
     with pytest.raises(ValueError, match=message):
-        imitate.imitate(run, "walker_run", "side", ic, ["GIIL-FT"])
+        goal_inference.imitate(run, "walker_run", "side", ic, ["GIIL-FT"])
     assert not os.path.exists(os.path.join(run, "results.jsonl"))
 
 
@@ -243,7 +244,7 @@ def test_every_preset_passes_the_checks_and_the_command_line_prints_one_line():
     for preset in ("smoke", "cpu", "paper"):
         for name, (cls, prefix) in checkpoint.COMPONENTS.items():
             rundir.check_flags(cls(**presets.PRESETS[name][preset]), prefix)
-        rundir.check_flags(imitate.ImitateConfig(**presets.PRESETS["imitate"][preset]))
+        rundir.check_flags(goal_inference.ImitateConfig(**presets.PRESETS["imitate"][preset]))
     rundir.check_flags(experts.ExpertConfig())
     with pytest.raises(ValueError, match="--snapshot-every 0: must be >= 1"):
         rundir.check_flags(experts.ExpertConfig(snapshot_every=0))
@@ -261,7 +262,7 @@ def test_phase_2_threads_are_the_command_lines_not_the_runs(smoke_run, tmp_path)
     threads = torch.get_num_threads()
     torch.set_num_threads(1)
     try:
-        imitate.imitate(run, "walker_run", "side", SMOKE_IMITATE)
+        goal_inference.imitate(run, "walker_run", "side", SMOKE_IMITATE)
         assert torch.get_num_threads() == 1
     finally:
         torch.set_num_threads(threads)
@@ -419,7 +420,7 @@ def test_a_run_folder_holding_another_agent_is_refused(smoke_run, tmp_path, monk
     with pytest.raises(ValueError, match="holds a stickman agent"):
         tables.run_table(os.path.join("agents", "walker"), SMOKE_IMITATE)
     with pytest.raises(ValueError, match=r"^--export agents/stickman: .* trained a walker agent; export it to agents/walker$"):
-        rundir.export_agent(smoke_run, os.path.join("agents", "stickman"))  # how such a folder comes about
+        checkpoint.export_agent(smoke_run, os.path.join("agents", "stickman"))  # how such a folder comes about
     assert not os.path.exists(os.path.join("agents", "stickman"))
 
 
@@ -523,10 +524,10 @@ def test_ctrl_c_then_the_same_imitate_command_goes_on_without_duplicates(smoke_r
     assert out.stderr.splitlines()[-1] == "interrupted: every evaluation finished is in the run's results.jsonl: the same command goes on from there"
     path = os.path.join(run, "results.jsonl")
     assert [(r["method"], r["seed"]) for r in rundir.read_jsonl(path)] == [("GIIL-ZS", 0), ("GIIL-ZS", 1), ("GIIL-ZS (demo 0)", 0)]
-    ic = imitate.ImitateConfig(**presets.PRESETS["imitate"]["smoke"], preset="smoke")  # what --preset smoke makes
-    rows = imitate.imitate(run, "walker_run", "side", ic, ["GIIL-FT"])
+    ic = goal_inference.ImitateConfig(**presets.PRESETS["imitate"]["smoke"], preset="smoke")  # what --preset smoke makes
+    rows = goal_inference.imitate(run, "walker_run", "side", ic, ["GIIL-FT"])
     assert [(r["method"], r["seed"]) for r in rows] == [("GIIL-FT", 0), ("GIIL-ZS (demo 0)", 1), ("GIIL-FT", 1)]
-    assert imitate.imitate(run, "walker_run", "side", ic, ["GIIL-FT"]) == [] and len(rundir.read_jsonl(path)) == 6
+    assert goal_inference.imitate(run, "walker_run", "side", ic, ["GIIL-FT"]) == [] and len(rundir.read_jsonl(path)) == 6
 
 
 def test_an_empty_episode_file_is_collected_again(smoke_data, tmp_path):
@@ -577,14 +578,14 @@ def test_rows_of_other_weights_are_not_credited_to_the_agent(smoke_run, tmp_path
     """imitate's rows carry rundir.weights_id; after the weights change the same command runs again, and the
     tables count the new agent's rows only."""
     run = copy_run(smoke_run, tmp_path)
-    first = imitate.imitate(run, "walker_run", "side", SMOKE_IMITATE)
+    first = goal_inference.imitate(run, "walker_run", "side", SMOKE_IMITATE)
     path = os.path.join(run, "checkpoint.pt")
     ckpt = torch.load(path, weights_only=True)
     assert {r["weights"] for r in first} == {rundir.weights_id(ckpt)} and first[0]["weights"].startswith("6:")
-    assert imitate.imitate(run, "walker_run", "side", SMOKE_IMITATE) == []  # the same agent: nothing runs again
+    assert goal_inference.imitate(run, "walker_run", "side", SMOKE_IMITATE) == []  # the same agent: nothing runs again
     ckpt["models"]["actor"] = {k: v + 1e-3 for k, v in ckpt["models"]["actor"].items()}  # as a resumed training would
     torch.save(ckpt, path)
-    second = imitate.imitate(run, "walker_run", "side", SMOKE_IMITATE)
+    second = goal_inference.imitate(run, "walker_run", "side", SMOKE_IMITATE)
     assert len(second) == len(first) and {r["weights"] for r in second} == {rundir.weights_id(ckpt)} != {first[0]["weights"]}
 
 
@@ -607,13 +608,13 @@ def test_a_run_in_training_is_not_imitated(smoke_run, tmp_path):
         with open(os.path.join(run, "lock"), "w") as f:
             f.write(str(trainer.pid))
         with pytest.raises(ValueError, match=rf"is being trained now by process {trainer.pid} .*: its checkpoint is not the final agent"):
-            imitate.imitate(run, "walker_run", "side", SMOKE_IMITATE)
+            goal_inference.imitate(run, "walker_run", "side", SMOKE_IMITATE)
         with pytest.raises(ValueError, match="is being trained now"):
             tables.run_table(run, SMOKE_IMITATE)
     finally:
         trainer.kill()
         trainer.wait()
-    assert len(imitate.imitate(run, "walker_run", "side", SMOKE_IMITATE)) == 2  # the trainer gone: its stale lock is no obstacle
+    assert len(goal_inference.imitate(run, "walker_run", "side", SMOKE_IMITATE)) == 2  # the trainer gone: its stale lock is no obstacle
 
 
 def test_two_files_scoring_one_evaluation_differently_are_named(tmp_path):
@@ -637,10 +638,10 @@ def test_every_config_field_says_what_it_is_in_the_help():
     import online
     import ot_reward
 
-    classes = [cls for cls, _ in checkpoint.COMPONENTS.values()] + [imitate.ImitateConfig, genrl.GenRLConfig, aime_nob.AIMENoBConfig,
+    classes = [cls for cls, _ in checkpoint.COMPONENTS.values()] + [goal_inference.ImitateConfig, genrl.GenRLConfig, aime_nob.AIMENoBConfig,
                                                                      online.OnlineConfig, ot_reward.OTConfig, collect.CollectConfig]
     for cls in classes:
-        comments = rundir.field_comments(cls)
+        comments = presets.field_comments(cls)
         assert [f.name for f in dataclasses.fields(cls) if not comments.get(f.name)] == [], cls.__name__
     out = subprocess.run([sys.executable, "imitate.py", "--help"], cwd=ROOT, capture_output=True, text=True).stdout
     assert "Adam on g (ours; chosen on same-body cells," in out and "(default 0.0003, or the preset's)" in out

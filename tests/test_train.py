@@ -149,7 +149,7 @@ def test_command_line_runs_and_resumes(smoke_data, tmp_path):
 
 
 def test_exported_agent_loads_weights_only_and_acts_like_its_run(smoke_run, tmp_path, monkeypatch, capsys):
-    path = rundir.export_agent(smoke_run, str(tmp_path / "agents" / "walker"))
+    path = checkpoint.export_agent(smoke_run, str(tmp_path / "agents" / "walker"))
     agent = torch.load(path, weights_only=True)
     assert "optims" not in agent and "rng" not in agent
     # D_body is not shipped: the agent reads demos from its preset's default folder; where it trained is kept
@@ -162,7 +162,7 @@ def test_exported_agent_loads_weights_only_and_acts_like_its_run(smoke_run, tmp_
     # exporting over an agent moves what was measured on the old one aside, so no table mixes the two
     with open(os.path.join(os.path.dirname(path), "results.jsonl"), "w") as f:
         f.write('{"method": "GIIL-ZS"}\n')
-    rundir.export_agent(smoke_run, os.path.dirname(path))
+    checkpoint.export_agent(smoke_run, os.path.dirname(path))
     assert not os.path.exists(os.path.join(os.path.dirname(path), "results.jsonl"))
     assert open(os.path.join(os.path.dirname(path), "previous_0", "results.jsonl")).read() == '{"method": "GIIL-ZS"}\n'
     # phase 2's default: the user's own run when there is one, else the shipped agent, saying which
@@ -178,7 +178,7 @@ def test_a_copy_of_an_exported_agent_trains_on_from_its_weights(smoke_run, smoke
     """--resume in a folder holding a shipped agent (no optimiser state): training goes on from its weights, its step
     count, with fresh Adam moments (their step counters restart), and the result resumes like any run."""
     run = str(tmp_path / "longer")
-    rundir.export_agent(smoke_run, run)
+    checkpoint.export_agent(smoke_run, run)
     shipped = torch.load(os.path.join(run, "checkpoint.pt"), weights_only=True)
     steps = presets.PRESETS["train"]["smoke"]["steps"]
     train.train(train.resolve_configs(train_args(data=smoke_data, steps=steps + 2), "smoke"), run, resume=True)

@@ -1,0 +1,270 @@
+"""Eq. 1, upper level, and Eq. 5: freeze the policy, infer the goal from a demonstration of another body or camera.
+
+GIIL-ZS  g = goal encoder(p_T), p_T the last video feature of a demo (Sec. 4); each of the 10 demos
+         gives a goal, each goal eval_episodes episodes in the agent's own env with the task's true reward.
+GIIL-ZS (demo 0)  the first demo's zero-shot goal, the goal every goal search starts from, evaluated with the search's
+         evaluation seeds: a search minus this column is what the search itself adds.
+GIIL-FT  from the first demo's zero-shot goal, g is optimised by L_GI (Eq. 5): imagined rollouts of the
+         frozen policy pi(a | s, g), per-step OT reward between the goal decoder's features of the imagined
+         states and the demos (ot_reward.py), a value V_ot(s) trained on TD(lambda) targets of that reward,
+         and the lambda-returns maximised through the dynamics with respect to g only. `seeds` seeds.
+GIIL-online  ours, after Sec. 6 (online.py): the goal chosen on real rollouts scored by the same OT reward.
+
+The goal searches (GIIL-FT, GIIL-online) share one interface, SEARCHES: a search is a function (cell, seed) -> goal,
+and its entry says how many seeds it runs and which settings its rows depend on (a row's identity, result_config).
+
+Deviation (docs/ablations.md, Phase 2): psi stays frozen. Sec. 4's joint finetuning of psi by L_MG did not help over
+the shipped agents' SE-SV and SE-CV columns, paired seed by seed, and was removed.
+
+Choices where the paper is silent:
+* start states of the goal-inference imagination: demo features mapped into the latent space by the goal encoder
+  q(s | p_t), Eq. 5's D_demo o q_phi read as embodiment-agnostic start states; the imagined steps are matched against
+  the demo frames that follow (ot_reward's windowed matching).
+* a segment against a 500-step demo: whole-demo OT (ot_reward.py) against every demo, the best one counting (ROT).
+
+The commands: imitate.py (one demo folder) and tables.py (every cell, with the baselines). Missing demos of the one
+body x task imitated are collected first (collect.py, the run's preset and data folder).
+"""
+import dataclasses
+import json
+import os
+import re
+import time
+from typing import Callable, ClassVar
+
+import numpy as np
+import torch
+from tqdm import tqdm
+
+import checkpoint
+import collect
+import envs
+import evaluate
+import online
+import ot_reward
+import policy
+import presets
+import rundir
+from video_encoder import check_same_encoder, load_encoder
+
+
+@dataclasses.dataclass
+class ImitateConfig:
+    # rundir.check_flags: the values a field may take where not a count (>= 1), a learning rate in (0, 1) or a float >= 0
+    ranges: ClassVar[dict] = {"video": (0, 1)}
+    preset: str = "cpu"  # smoke | cpu | paper: presets.py
+    steps: int = 300  # goal-finetuning updates (ours, a CPU budget)
+    starts: int = 64  # imagined trajectories per L_GI update (ours)
+    goal_lr: float = 3e-4  # Adam on g (ours; chosen on same-body cells, docs/ablations.md)
+    critic_lr: float = 8e-5  # V_ot, as the phase-1 critic (Dreamer V1)
+    seeds: int = 5  # GIIL-FT seeds (the paper: 3; 5 so that FT vs ZS(demo 0) is measured beyond the noise)
+    eval_episodes: int = 3  # episodes per GIIL-ZS goal and per goal search's seed
+    eval_steps: int = envs.EPISODE_STEPS  # agent steps per evaluation episode
+    video: int = 1  # write demo | agent side-by-side videos
+
+
+CHOICES = {"preset": tuple(presets.PRESETS["imitate"])}
+FINETUNE_FIELDS = ("steps", "starts", "goal_lr", "critic_lr", "seeds")  # what GIIL-FT alone reads
+EVALUATION_FIELDS = ("eval_episodes", "eval_steps")  # what every row depends on
+
+
+def goal_inference_loss(models, critic_ot, slow_ot, goal, start, demo_p, cfgs, ot_cfg, offsets=None):  # Eq. 5
+    """L_GI: -lambda-returns of the OT reward of the frozen policy's imagined rollouts, differentiable in g only.
+    goal (F,) the parameter; start dict of (N, .). -> (L_GI, V_ot critic loss, metrics)."""
+    ac = cfgs["ac"]
+    wm, vae, actor = models["world_model"], models["goal_vae"], models["actor"]
+    N = len(start["deter"])
+    with policy.freeze(wm, vae, actor, slow_ot):  # psi*, the world model and the goal decoder are constants here
+        feat, _, _ = policy.rollout(wm, actor, start, goal.expand(N, -1), ac.horizon)  # (N, H + 1, F)
+        with torch.no_grad():  # (N, H): r^ot on arrival, a constant for g (Eq. 5 differentiates V_ot only)
+            reward, _ = ot_reward.ot_reward(vae.decode(feat[:, 1:]), demo_p, ot_cfg, offsets)
+        value = slow_ot(feat, None)  # (N, H + 1): V_ot(s), differentiable in feat
+        returns = policy.lambda_return(reward, value, ac.gamma, ac.lambda_)  # (N, H)
+    # Eq. 5: -E[sum V], the lambda-returns standing for the values as in Dreamer V1; g's gradient flows through V_ot of
+    # the imagined states
+    loss = -returns.mean()
+    c_loss, c_metrics = policy.critic_loss(critic_ot, feat, None, returns)
+    return loss, c_loss, {"L_GI": loss.item(), "ot_reward": reward.mean().item(), **{"ot_" + k: v for k, v in c_metrics.items()}}
+
+
+def finetune_goal(models, cfgs, ic, ot_cfg, p_goal, demo_p, seed, device):
+    """GIIL-FT: optimise g for ic.steps updates of Eq. 5 from the zero-shot goal q(s | p_goal), p_goal (D,) the first
+    demo's last feature, demo_p the demos' features [(M, D)]. Returns the final g (F,)."""
+    torch.manual_seed(seed)
+    ac = cfgs["ac"]
+    critic_ot, slow_ot = policy.make_critics(ac, models["world_model"].feat_dim, 0)
+    critic_ot, slow_ot = critic_ot.to(device), slow_ot.to(device)
+    with torch.no_grad():
+        goal = torch.nn.Parameter(models["goal_vae"].goal(p_goal).clone())  # g0 = q(s | p_T): GIIL-ZS's goal
+    opt_goal = torch.optim.Adam([goal], lr=ic.goal_lr)
+    opt_ot = torch.optim.Adam(critic_ot.parameters(), lr=ic.critic_lr)
+    stop = lambda: "nothing more is appended to results.jsonl (a learning rate too high? --goal-lr, --critic-lr)"
+    # (K, M, D): one collection, every demo of one length; float64 once here, not in every ot_reward call (exact either way)
+    demo_p = torch.as_tensor(np.stack(demo_p), device=device, dtype=torch.float64)
+    K, M = demo_p.shape[:2]
+    bar = tqdm(range(ic.steps), desc=f"GIIL-FT seed {seed}", leave=False)
+    for step in bar:
+        # Eq. 5's start states: goal-encoder states of demo frames t0, matched against the frames that follow
+        t0 = torch.randint(M - ac.horizon - 1, (ic.starts,), device=device)
+        with torch.no_grad():
+            start = models["goal_vae"].encode(demo_p[torch.randint(K, (ic.starts,), device=device), t0].float())
+        start = {k: start[k] for k in models["world_model"].state_keys}
+        gi_loss, ot_loss, metrics = goal_inference_loss(models, critic_ot, slow_ot, goal, start, demo_p, cfgs, ot_cfg, t0 + 1)
+        for opt, loss, what in ((opt_goal, gi_loss, "Eq. 5 L_GI"), (opt_ot, ot_loss, "V_ot loss")):
+            policy.checked_step(opt, loss, f"GIIL-FT seed {seed}: {what}", step, stop)
+        policy.ema_update(slow_ot, critic_ot, ac.slow_critic_rate)
+        bar.set_postfix(ot=f"{metrics['ot_reward']:.4f}")
+    return goal.detach()
+
+
+# --- the goal searches: one interface, registered in SEARCHES ---
+
+@dataclasses.dataclass
+class Cell:
+    """What a goal search sees of one demo folder: the frozen agent, the settings, the demos and their zero-shot goals."""
+    models: dict
+    cfgs: dict
+    ic: ImitateConfig
+    oc: online.OnlineConfig
+    ot_cfg: ot_reward.OTConfig
+    task: str
+    demos: list  # the folder's episodes (collect.load_folder): "p" (T + 1, D) video features, "pixels"
+    goals: list  # GIIL-ZS's goals q(s | p_T), one (F,) per demo
+    device: str
+
+
+def giil_ft(cell, seed):
+    """the goal finetuned by Eq. 5 from demo 0's zero-shot goal, --seeds seeds (5)."""
+    goal = finetune_goal(cell.models, cell.cfgs, cell.ic, cell.ot_cfg, torch.as_tensor(cell.demos[0]["p"][-1], device=cell.device),
+                         [d["p"] for d in cell.demos], seed, cell.device)
+    # how far finetuning moved g: beside the distance between the demos' zero-shot goals (docs/results.md)
+    return goal, 0, {"goal_shift": round((goal - cell.goals[0]).norm().item(), 3)}
+
+
+def giil_online(cell, seed):
+    """ours, after Sec. 6 (online.py): the goal chosen among the demos' zero-shot goals by the OT reward of real
+    rollouts, 20 episodes per seed, 3 seeds."""
+    tc, ic = cell.cfgs["train"], cell.ic
+    goal, k, log = online.refine_goal(cell.models, cell.cfgs, lambda: envs.make_env(tc.env, cell.task), torch.stack(cell.goals),
+                                      np.stack([d["p"] for d in cell.demos]), cell.oc, seed, load_encoder(tc.encoder), ic.eval_steps,
+                                      cell.ot_cfg)
+    return goal, k, {"env_steps": len(log) * ic.eval_steps, "ot_log": [[i, s, round(score, 4)] for i, s, score in log], "chosen_demo": k}
+
+
+@dataclasses.dataclass(frozen=True)
+class GoalSearch:
+    search: Callable  # (cell, seed) -> (g (F,), the demo shown beside its video, more fields of its row)
+    seeds: Callable  # (ImitateConfig, OnlineConfig) -> the seeds it runs, each paired with GIIL-ZS (demo 0)
+    config: Callable  # (ImitateConfig, OnlineConfig) -> the settings its rows depend on: a row's identity
+    flag: str  # imitate.py --<flag>, tables.py --methods <flag>
+
+
+def finetune_config(ic, oc):
+    return {k: v for k, v in dataclasses.asdict(ic).items() if k not in ("seeds", "video")}
+
+
+def online_config(ic, oc):  # as a row stores it: JSON has no tuples (the schedule reads back as lists)
+    fields = {**{k: getattr(ic, k) for k in EVALUATION_FIELDS}, **{k: v for k, v in dataclasses.asdict(oc).items() if k != "seeds"}}
+    return json.loads(json.dumps(fields))
+
+
+SEARCHES = {
+    "GIIL-FT": GoalSearch(giil_ft, lambda ic, oc: ic.seeds, finetune_config, "finetune"),
+    "GIIL-online": GoalSearch(giil_online, lambda ic, oc: oc.seeds, online_config, "online"),
+}
+ZERO_SHOT = ("GIIL-ZS", "GIIL-ZS (demo 0)")
+METHODS = ZERO_SHOT + tuple(SEARCHES)  # a cell's columns, in the tables' order
+
+
+def result_config(ic, method, oc):
+    """The settings a row of `method` depends on: evaluation alone for the zero-shot columns, the search's own too."""
+    return {k: getattr(ic, k) for k in EVALUATION_FIELDS} if method in ZERO_SHOT else SEARCHES[method].config(ic, oc)
+
+
+def done_here(rows, demo, view, returns, ic, oc, weights):
+    """The (method, seed) pairs of a cell's rows that count (rundir.finished) under these settings and weights."""
+    configs = {m: result_config(ic, m, oc) for m in METHODS}
+    return {(r["method"], r["seed"]) for r in rundir.finished(rows, demo, view, returns, configs, weights)}
+
+
+def imitate(run_dir, demo, view, ic, searches=(), oc=None, zero_shot=True, done=None):
+    """For one demo folder: GIIL-ZS on every demo (unless not zero_shot), then each goal search named (SEARCHES' keys)
+    for its seeds, each seed beside GIIL-ZS (demo 0) on the same evaluation seeds. Appends each evaluation to
+    runs/<name>/results.jsonl, each row with the agent's weights (weights_id), and returns the rows. done:
+    (method, seed) pairs not run again (tables.py); None: those results.jsonl has for these demos, settings and weights
+    (a rerun after Ctrl-C goes on, appending no duplicates; a retrained agent runs again)."""
+    rundir.check_flags(ic)
+    oc = oc or online.OnlineConfig(**presets.PRESETS["online"][ic.preset])
+    device = "cuda" if torch.cuda.is_available() else "cpu"
+    rundir.not_training(run_dir)
+    cfgs, models, ckpt = checkpoint.load_run(run_dir, device)
+    tc, weights = cfgs["train"], rundir.weights_id(ckpt)
+    rundir.fast_matmul()  # oneDNN where it is faster and still fp32 (rundir.py)
+    folder = checkpoint.demo_folder(cfgs, demo, view)
+    demo_body, task = demo.rsplit("_", 1)
+    demos = collect.load_folder(folder, ("pixels", "p"))  # one collection: every demo of one length
+    if "GIIL-FT" in searches and len(demos[0]["p"]) < cfgs["ac"].horizon + 2:
+        raise ValueError(f"{folder}: demos of {len(demos[0]['p'])} steps are too short for imagined segments of {cfgs['ac'].horizon}; collect longer ones")
+    for d in demos:
+        check_same_encoder(ckpt["encoder"], d["encoder"], d["path"])
+    demo_returns = [round(d["return"], 3) for d in demos]  # identifies this D_demo: rows of older demos do not count
+    where = envs.setting(tc.env, demo_body, view)
+    out_dir, results_path = os.path.join(run_dir, "imitate"), os.path.join(run_dir, "results.jsonl")
+    os.makedirs(out_dir, exist_ok=True)
+    if done is None:
+        done = done_here(rundir.load_results(run_dir), demo, view, demo_returns, ic, oc, weights)
+        if done:
+            print(f"{results_path} has {len(done)} of these evaluations (these demos and settings): kept, not run again")
+    done, rows = set(done), []  # done grows as this call evaluates: the searches share their GIIL-ZS (demo 0) seeds
+
+    def evaluate_goal(method, seed, goal, k, t0, **extra):
+        """eval_episodes episodes at once with goal (F,), environment seeds 20000 + 100 seed + e: a search's seed s and
+        GIIL-ZS (demo 0) seed s meet the same start states. Seed 0's first episode is written as a video beside demo k,
+        but for GIIL-ZS (demo 0): its seed 0 is GIIL-ZS's demo 0, goal and start alike, already written."""
+        render = bool(ic.video) and seed == 0 and method != "GIIL-ZS (demo 0)"
+        env_list = [envs.make_env(tc.env, task) for _ in range(ic.eval_episodes)]
+        returns, frames = evaluate.run_episodes(env_list, models, goal[None].expand(ic.eval_episodes, -1), ic.eval_steps,
+                                                cfgs["wm"].obs, 20_000 + 100 * seed, render)
+        scores = [evaluate.episode_score(task, r, ic.eval_steps) for r in returns]
+        if render:
+            name = re.sub(r"[^A-Za-z0-9-]+", "_", method)  # GIIL-ZS, GIIL-FT, GIIL-online: no shell quoting needed
+            evaluate.write_video(os.path.join(out_dir, f"{demo}_{view}_{name}_s{seed}.mp4"), demos[k]["pixels"], frames[0])
+        row = {"agent": tc.env, "demo": demo, "view": view, "task": task, "setting": where, "method": method, "seed": seed,
+               "score": float(np.mean(scores)), "episode_scores": scores, "time": round(time.time() - t0, 1), "demo_returns": demo_returns,
+               "config": result_config(ic, method, oc), "weights": weights, **extra}
+        rundir.append_jsonl(results_path, row)
+        rows.append(row)
+        done.add((method, seed))
+
+    with torch.no_grad():
+        goals = [models["goal_vae"].goal(torch.as_tensor(d["p"][-1], device=device)) for d in demos]  # GIIL-ZS: g = q(s | p_T)
+    for k, goal in enumerate(tqdm(goals if zero_shot else [], desc=f"GIIL-ZS {demo} {view}")):
+        if ("GIIL-ZS", k) not in done:
+            evaluate_goal("GIIL-ZS", k, goal, k, time.time())  # each row its own time: a table's cost is the sum
+    cell = Cell(models, cfgs, ic, oc, ot_reward.OTConfig(**presets.PRESETS["ot"][ic.preset]), task, demos, goals, device)
+    for method in searches:
+        for seed in range(SEARCHES[method].seeds(ic, oc)):  # each seed independent of the others: its own RNG seeds
+            if ("GIIL-ZS (demo 0)", seed) not in done:
+                evaluate_goal("GIIL-ZS (demo 0)", seed, goals[0], 0, time.time())
+            if (method, seed) not in done:
+                t0 = time.time()  # the search's time: the search and its evaluation
+                goal, k, extra = SEARCHES[method].search(cell, seed)
+                evaluate_goal(method, seed, goal, k, t0, **extra)
+    for method in METHODS:
+        scores = [r["score"] for r in rows if r["method"] == method]
+        if scores:
+            print(f"{method} {tc.env} imitating {demo} ({view} view, {where}): normalised score {np.mean(scores):.1f} +- "
+                  f"{evaluate.stderr(scores):.1f} over {len(scores)} {'demos' if method == 'GIIL-ZS' else 'seeds'} x {ic.eval_episodes} episodes")
+    print(f"appended to {results_path}; videos in {out_dir}")
+    return rows
+
+
+def config_flags(parser):
+    """--<field> of every ImitateConfig field (the preset's value unless given); parse_config reads them back."""
+    presets.config_flags(parser, ImitateConfig, choices=CHOICES)
+
+
+def parse_config(args):
+    """-> (the ImitateConfig of the preset and the flags given, the fields given)."""
+    given = {f.name: getattr(args, f.name) for f in dataclasses.fields(ImitateConfig) if getattr(args, f.name) is not None}
+    return ImitateConfig(**{**presets.PRESETS["imitate"][given.get("preset", "cpu")], **given}), given
