@@ -19,7 +19,7 @@ updates into runs/<name>/fidelity.jsonl (a curve against updates); this command 
 imagined objective rank goals as reality does? Candidates: the zero-shot goals q(s | p_T) of the cell's 10 demos and
 10 draws of q(s | p_T) of its first demo (online.posterior_goals), whose outcomes differ. Each goal acts in the real
 environment from the same `--episodes` start states (env seeds 60000 + i); its real score is Eq. 8's, averaged. Eq. 5's
-J of a goal is the mean OT reward of the frozen policy's imagined rollouts, as GIIL-FT computes it (imitate.py): 256
+J of a goal is the mean OT reward of the frozen policy's imagined rollouts, as GIIL-FT computes it (goal_inference.py): 256
 starts from goal-encoder states of demo frames t0, `horizon` steps, matched against the demo frames after t0; every goal
 from the same starts and imagination noise. Reported: Spearman (J, real score) over the 20 goals; the same for the
 task reward of the same rollouts' decoded states (a probe of the imagination alone, without the OT reward); and the
@@ -84,11 +84,7 @@ def measure(wm, vae, episodes, starts=STARTS, ahead=AHEAD, seed=0):
     state = {k: torch.cat([v[:, t0] for t0 in starts]) for k, v in post.items()}  # (E * S, .), start-major
     index = torch.tensor(starts, device=device).repeat_interleave(len(obs))[:, None] + torch.arange(1, ahead + 1, device=device)
     row = torch.arange(len(obs), device=device).repeat(len(starts))[:, None]  # (E * S, 1): each start's episode
-    feats = []
-    for k in range(ahead):
-        state = wm.img_step(state, action[row[:, 0], index[:, k]], sample=False)
-        feats.append(wm.feat(state))
-    imagined = torch.stack(feats, 1)  # (E * S, ahead, F)
+    imagined = wm.replay(state, action[row, index])  # (E * S, ahead, F)
     space = wm._target(obs)  # (E, L, ...): observations in the decoder's space
     target = space[row, index]  # (E * S, ahead, ...)
     last = space[row[:, 0], index[:, 0] - 1][:, None]  # (E * S, 1, ...): o_t0, held
@@ -172,7 +168,7 @@ def plot(rows, path):
 def imagined_objective(models, cfgs, task, goals, demo_p, ot_cfg, starts=256, seed=0):
     """Eq. 5's J of each goal: the mean OT reward r^ot of the frozen policy's imagined rollouts (the quantity L_GI's
     lambda-returns estimate), from goal-encoder states of demo frames t0 matched against the frames after t0, as
-    imitate.finetune_goal; every goal from the same starts and noise. Beside it, a probe of the imagination alone: the
+    goal_inference.finetune_goal; every goal from the same starts and noise. Beside it, a probe of the imagination alone: the
     mean task reward of the same rollouts' decoded states (envs.observed_reward; state observations only).
     goals (G, F), demo_p (K, M, D) -> J (G,), task reward (G,) (NaN with pixel observations)."""
     wm, vae, actor, H = models["world_model"], models["goal_vae"], models["actor"], cfgs["ac"].horizon

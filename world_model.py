@@ -395,15 +395,18 @@ class WorldModel(nn.Module):
         (prior modes, no sampling) -> imagined feats (B, T - context, F) and keep (B,): False for segments with an
         episode start inside the imagined part."""
         obs, action, is_first = batch[self.cfg.obs], batch["action"], batch["is_first"]
-        T = action.shape[1]
-        assert 0 < context < T
+        assert 0 < context < action.shape[1]
         post, _ = self.observe(obs[:, :context], action[:, :context], is_first[:, :context])
-        state = {k: v[:, -1] for k, v in post.items()}
+        return self.replay({k: v[:, -1] for k, v in post.items()}, action[:, context:]), ~is_first[:, context:].any(1)
+
+    def replay(self, state, actions, sample=False):
+        """The prior rolled open loop from `state` (N, .) with recorded actions (N, H, A) -> imagined feats (N, H, F)
+        (prior modes unless sample)."""
         feats = []
-        for t in range(context, T):
-            state = self.img_step(state, action[:, t], sample=False)
+        for a in actions.unbind(1):
+            state = self.img_step(state, a, sample=sample)
             feats.append(feat(state))
-        return torch.stack(feats, 1), ~is_first[:, context:].any(1)
+        return torch.stack(feats, 1)
 
     def open_loop_error(self, batch, context, imagined=None):
         """The decoder's mean squared error per observation element on the open-loop imagined steps (open_loop,
