@@ -72,8 +72,8 @@ def run_episodes(env_list, models, goals, steps, obs_key, seed, render=False, ra
 
 
 def write_video(path, demo_frames, agent_frames):
-    """demo | agent side by side, 4x upscaled, 20 frames/s (one frame per agent step = 0.05 s); a whole file or none
-    (rundir.atomic_write: cv2 writes the temporary file by its name)."""
+    """demo | agent side by side, 4x upscaled, 20 frames/s (one frame per agent step = 0.05 s); a whole file, reopened
+    with all its frames, or none (rundir.atomic_write: cv2 writes the temporary file by its name)."""
     n = min(len(demo_frames), len(agent_frames))
     both = np.concatenate([demo_frames[:n], agent_frames[:n]], axis=2)  # (n, 64, 128, 3)
 
@@ -84,6 +84,12 @@ def write_video(path, demo_frames, agent_frames):
         for frame in both:
             writer.write(cv2.resize(cv2.cvtColor(frame, cv2.COLOR_RGB2BGR), None, fx=4, fy=4, interpolation=cv2.INTER_NEAREST))
         writer.release()
+        # verified whole before it replaces an older file: cv2 reports no full disk, and a cut mp4 lacks its index
+        video = cv2.VideoCapture(name)
+        frames = int(video.get(cv2.CAP_PROP_FRAME_COUNT)) if video.isOpened() else 0
+        video.release()
+        if frames != n:
+            raise OSError(f"{path}: the video reopened with {frames} of its {n} frames (disk full?); any older video there is kept")
 
     rundir.atomic_write(path, write, by_name=True)
 

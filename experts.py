@@ -107,6 +107,9 @@ def load_expert(body, task, step=None):
     if not os.path.exists(path):
         raise FileNotFoundError(f"no expert weights at {path}: train them with `python experts.py --body {body} --tasks {task}`")
     saved = rundir.load_checkpoint(path)
+    if (saved.get("body"), saved.get("task")) != (body, task) or (step is not None and saved.get("step") != step):
+        raise ValueError(f"{path} holds the expert of {saved.get('body')} {saved.get('task')} at step {saved.get('step')}, not {body} {task}"
+                         f"{'' if step is None else f' at step {step}'}: put the right file back (git checkout {path}) or retrain it")
     w0, w_last = saved["actor"]["net.0.w"], saved["actor"]["net.4.w"]
     actor = Actor(1, w0.shape[1], w_last.shape[2] // 2, saved["hidden"])
     actor.load_state_dict({k: v.float() for k, v in saved["actor"].items()})

@@ -354,6 +354,8 @@ def run_cells(parser, run_cell, method, cls, presets):
     if args.shard and not args.settings:
         parser.error("--shard works with --settings only: add --settings, or drop it")
     cfg = config_from_args(cls, presets, args)  # a bad value: ValueError, one line (rundir.run_main)
+    rundir.run_checkpoint(args.run)
+    args.run = checkpoint.work_folder(args.run)
     if args.demo:
         return run_cell(args.run, args.demo, args.view or "side", cfg, args.data)
     settings, shard = rundir.parse_settings(args.settings), rundir.parse_shard(args.shard)

@@ -209,7 +209,7 @@ def imitate(run_dir, demo, view, ic, searches=(), oc=None, zero_shot=True, done=
         check_same_encoder(ckpt["encoder"], d["encoder"], d["path"])
     demo_returns = [round(d["return"], 3) for d in demos]  # identifies this D_demo: rows of older demos do not count
     where = envs.setting(tc.env, demo_body, view)
-    out_dir, results_path = os.path.join(run_dir, "imitate"), os.path.join(run_dir, "results.jsonl")
+    out_dir, results_path = rundir.no_link(os.path.join(run_dir, "imitate")), os.path.join(run_dir, "results.jsonl")
     os.makedirs(out_dir, exist_ok=True)
     if done is None:
         done = done_here(rundir.load_results(run_dir), demo, view, demo_returns, ic, oc, weights)
@@ -219,8 +219,9 @@ def imitate(run_dir, demo, view, ic, searches=(), oc=None, zero_shot=True, done=
 
     def evaluate_goal(method, seed, goal, k, t0, **extra):
         """eval_episodes episodes at once with goal (F,), environment seeds 20000 + 100 seed + e: a search's seed s and
-        GIIL-ZS (demo 0) seed s meet the same start states. Seed 0's first episode is written as a video beside demo k,
-        but for GIIL-ZS (demo 0): its seed 0 is GIIL-ZS's demo 0, goal and start alike, already written."""
+        GIIL-ZS (demo 0) seed s meet the same start states. Seed 0's median-scoring episode (a representative one, its
+        index in the row's video_episode) is written as a video beside demo k, but for GIIL-ZS (demo 0): its seed 0 is
+        GIIL-ZS's demo 0, goal and start alike, already written."""
         render = bool(ic.video) and seed == 0 and method != "GIIL-ZS (demo 0)"
         env_list = [envs.make_env(tc.env, task) for _ in range(ic.eval_episodes)]
         returns, frames = evaluate.run_episodes(env_list, models, goal[None].expand(ic.eval_episodes, -1), ic.eval_steps,
@@ -228,7 +229,8 @@ def imitate(run_dir, demo, view, ic, searches=(), oc=None, zero_shot=True, done=
         scores = [evaluate.episode_score(task, r, ic.eval_steps) for r in returns]
         if render:
             name = re.sub(r"[^A-Za-z0-9-]+", "_", method)  # GIIL-ZS, GIIL-FT, GIIL-online: no shell quoting needed
-            evaluate.write_video(os.path.join(out_dir, f"{demo}_{view}_{name}_s{seed}.mp4"), demos[k]["pixels"], frames[0])
+            extra["video_episode"] = int(np.argsort(scores)[len(scores) // 2])
+            evaluate.write_video(os.path.join(out_dir, f"{demo}_{view}_{name}_s{seed}.mp4"), demos[k]["pixels"], frames[extra["video_episode"]])
         row = {"agent": tc.env, "demo": demo, "view": view, "task": task, "setting": where, "method": method, "seed": seed,
                "score": float(np.mean(scores)), "episode_scores": scores, "time": round(time.time() - t0, 1), "demo_returns": demo_returns,
                "config": result_config(ic, method, oc), "weights": weights, **extra}

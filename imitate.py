@@ -31,6 +31,7 @@ def main():
     run = args.run or checkpoint.resolve_run(args.env or "walker", ic.preset)
     # before anything runs: the run's agent is the body --env names (with --run) and what its folder's name says
     rundir.run_checkpoint(run, env=args.env)
+    run = checkpoint.work_folder(run)
     lock = rundir.cell_lock(run, args.demo, args.view)
     with rundir.claim(lock) as other:  # as a tables.py cell: one process at a time
         if other:

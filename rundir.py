@@ -127,10 +127,17 @@ def trim_jsonl(path, step):
     atomic_write(path, lambda f: f.write("".join(json.dumps(r) + "\n" for r in rows).encode()))
 
 
+def no_link(path):
+    """path, refused where it is a symbolic link: a run folder from elsewhere never makes this project write outside it."""
+    if os.path.islink(path):
+        raise ValueError(f"{path} is a symbolic link (to {os.readlink(path)}): nothing is written through a link; remove it")
+    return path
+
+
 def append_jsonl(path, row):
     """Append one row. A last line without its newline (a kill) is completed if it is a whole row, as read_jsonl
     counts it, and dropped otherwise, so that the new row starts on a line of its own."""
-    with open(path, "a+b") as f:
+    with open(no_link(path), "a+b") as f:
         fcntl.flock(f, fcntl.LOCK_EX)  # one appender at a time (table shards in parallel processes), released on close
         f.seek(0)
         text = f.read()
@@ -182,7 +189,7 @@ def not_training(run_dir):
 
 def cell_lock(run_dir, demo, view):
     """The lock file of a cell while a process runs it (claim; tables.py's cells, imitate.py --demo)."""
-    return os.path.join(run_dir, "imitate", f"{demo}_{view}.lock")
+    return os.path.join(no_link(os.path.join(run_dir, "imitate")), f"{demo}_{view}.lock")
 
 
 def parse_shard(text):
@@ -326,7 +333,7 @@ def atomic_write(path, write, by_name=False):
     the writer's pid, so two processes writing the same file (two runs side by side collecting one D_demo) each rename
     a whole file of their own; a killed writer's leftover temporary file goes at the next write of `path`. by_name:
     write(name) gets the temporary file's name instead, ending in path's extension (cv2.VideoWriter picks the format by it)."""
-    os.makedirs(os.path.dirname(path) or ".", exist_ok=True)
+    os.makedirs(os.path.dirname(no_link(path)) or ".", exist_ok=True)
     tmp = f"{path}.{os.getpid()}.tmp" + (os.path.splitext(path)[1] if by_name else "")
     try:
         if by_name:

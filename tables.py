@@ -313,7 +313,7 @@ def main():
         rundir.use_threads(args.threads)
         run = args.run or checkpoint.resolve_run(args.env, ic.preset)
         rundir.run_checkpoint(run, env=args.env)  # before anything runs: the run's agent is what its folder's name says
-        run_table(run, ic, None, settings, shard, (args.methods or "finetune").split(","), budgets)
+        run_table(checkpoint.work_folder(run), ic, None, settings, shard, (args.methods or "finetune").split(","), budgets)
         return
     paths = args.table or args.curves
     missing = [path for path in paths if not os.path.isfile(path)]

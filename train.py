@@ -287,6 +287,7 @@ def main():
     elif args.evaluate:
         device = "cuda" if torch.cuda.is_available() else "cpu"
         run_cfgs, models, _ = load_run(run_dir, device, getattr(args, "train.env"))
+        run_dir = checkpoint.work_folder(run_dir)
         torch.set_num_threads(tc.threads)
         rundir.fast_matmul()  # oneDNN where it is faster and still fp32 (rundir.py)
         run_cfgs["train"] = dataclasses.replace(run_cfgs["train"], eval_episodes=tc.eval_episodes, eval_steps=tc.eval_steps,

@@ -209,6 +209,8 @@ class TorchScriptEncoder:
         self.path, self.batch = path, batch
         self.window = int(getattr(self.module, "window", WINDOW))
         self.size = int(getattr(self.module, "input_size", 224))  # InternVideo2: 224 px (Wang et al. 2024)
+        if self.window < 1 or self.size < 1:
+            raise ValueError(f"{path} says window {self.window}, input_size {self.size}: both must be >= 1 (frames per window, pixels)")
         with open(path, "rb") as f:
             digest = hashlib.file_digest(f, "sha256").hexdigest()
         self.name = f"torchscript:{os.path.basename(path)}:{digest[:12]}"

@@ -27,6 +27,8 @@ def test_zero_shot_and_finetune_end_to_end(smoke_run):
     videos = sorted(n for n in os.listdir(os.path.join(smoke_run, "imitate")) if n.startswith("stickman_run_diagonal"))
     assert videos == ["stickman_run_diagonal_GIIL-FT_s0.mp4", "stickman_run_diagonal_GIIL-ZS_s0.mp4"]  # ZS (demo 0)'s is ZS's demo 0
     assert os.path.getsize(os.path.join(smoke_run, "imitate", videos[0])) > 0
+    filmed = [r for r in rows if "video_episode" in r]  # seed 0 of GIIL-ZS's first demo and of GIIL-FT: the median episode
+    assert len(filmed) == 2 and all(r["video_episode"] == np.argsort(r["episode_scores"])[len(r["episode_scores"]) // 2] for r in filmed)
     logged = [json.loads(l) for l in open(os.path.join(smoke_run, "results.jsonl"))]
     assert logged[-len(rows):] == rows
 

@@ -572,6 +572,75 @@ def test_a_video_cut_off_half_way_leaves_the_old_file(tmp_path, monkeypatch):
     assert open(path, "rb").read(12)[4:8] == b"ftyp" and os.listdir(tmp_path) == [os.path.basename(path)]
 
 
+def test_a_video_that_does_not_reopen_whole_keeps_the_old_file(tmp_path, monkeypatch):
+    """A full disk: cv2 drops frames without a word; the video is reopened and counted before it replaces anything."""
+    path = str(tmp_path / "walker_run_side_GIIL-FT_s0.mp4")
+    with open(path, "wb") as f:
+        f.write(b"the video of an earlier run")
+    writer = evaluate.cv2.VideoWriter
+
+    class Full:  # writes its first two frames, then nothing (ENOSPC is not reported)
+        def __init__(self, *args):
+            self.writer, self.frames = writer(*args), 0
+
+        def __getattr__(self, name):
+            return getattr(self.writer, name)
+
+        def write(self, frame):
+            self.frames += 1
+            if self.frames <= 2:
+                self.writer.write(frame)
+
+    monkeypatch.setattr(evaluate.cv2, "VideoWriter", Full)
+    with pytest.raises(OSError, match=r"walker_run_side_GIIL-FT_s0.mp4: the video reopened with 2 of its 6 frames \(disk full\?\)"):
+        evaluate.write_video(path, np.zeros((6, 64, 64, 3), np.uint8), np.zeros((6, 64, 64, 3), np.uint8))
+    assert open(path, "rb").read() == b"the video of an earlier run" and os.listdir(tmp_path) == [os.path.basename(path)]
+
+
+def test_nothing_is_written_through_a_link_in_a_run_folder(tmp_path):
+    """A run folder from elsewhere whose results.jsonl or imitate/ is a link: refused before anything is written."""
+    outside = tmp_path / "outside"
+    outside.mkdir()
+    (outside / "rows.jsonl").write_text('{"a": 1}\n{"cut')
+    run = tmp_path / "run"
+    run.mkdir()
+    os.symlink(outside / "rows.jsonl", run / "results.jsonl")
+    os.symlink(outside, run / "imitate")
+    with pytest.raises(ValueError, match=r"results.jsonl is a symbolic link \(to .*rows.jsonl\): nothing is written through a link; remove it"):
+        rundir.append_jsonl(str(run / "results.jsonl"), {"b": 2})
+    with pytest.raises(ValueError, match=r"imitate is a symbolic link"):
+        rundir.cell_lock(str(run), "walker_run", "side")
+    with pytest.raises(ValueError, match=r"results.jsonl is a symbolic link"):
+        rundir.atomic_write(str(run / "results.jsonl"), lambda f: f.write(b"{}"))
+    assert (outside / "rows.jsonl").read_text() == '{"a": 1}\n{"cut' and os.listdir(outside) == ["rows.jsonl"]
+
+
+def test_the_shipped_agents_results_go_to_runs_not_into_its_folder(smoke_run, tmp_path, monkeypatch):
+    """Phase 2 on agents/<body> writes to runs/agent_<body> (its checkpoint a link to the agent's); agents/ keeps the weights only."""
+    monkeypatch.chdir(tmp_path)
+    os.makedirs("agents/walker")
+    shutil.copy(os.path.join(smoke_run, "checkpoint.pt"), "agents/walker/checkpoint.pt")
+    work = checkpoint.work_folder("agents/walker")
+    assert work == os.path.join("runs", "agent_walker") and os.path.realpath(os.path.join(work, "checkpoint.pt")) == str(tmp_path / "agents/walker/checkpoint.pt")
+    rows = goal_inference.imitate(work, "walker_run", "side", SMOKE_IMITATE, [])
+    assert rows and all(r["weights"] == rundir.weights_id(rundir.run_checkpoint("agents/walker")) for r in rows)
+    assert os.listdir("agents/walker") == ["checkpoint.pt"] and sorted(os.listdir(work)) == ["checkpoint.pt", "imitate", "results.jsonl"]
+    assert checkpoint.work_folder("agents/walker") == work and checkpoint.work_folder(smoke_run) == smoke_run  # again; a run of one's own
+    os.remove(os.path.join(work, "checkpoint.pt"))
+    shutil.copy("agents/walker/checkpoint.pt", os.path.join(work, "checkpoint.pt"))
+    with pytest.raises(ValueError, match=r"runs/agent_walker/checkpoint.pt is a checkpoint of its own: move that run elsewhere"):
+        checkpoint.work_folder("agents/walker")
+
+
+def test_an_expert_file_of_another_task_is_refused(tmp_path, monkeypatch):
+    """experts/walker_run.pt replaced by the walk expert: demos labelled run are not collected from it."""
+    os.makedirs(tmp_path / "experts")
+    shutil.copy(experts.expert_path("walker", "walk"), tmp_path / "experts" / "walker_run.pt")
+    monkeypatch.setattr(experts, "expert_path", lambda body, task, step=None: str(tmp_path / "experts" / f"{body}_{task}.pt"))
+    with pytest.raises(ValueError, match=r"walker_run.pt holds the expert of walker walk at step .*, not walker run: put the right file back"):
+        experts.load_expert("walker", "run")
+
+
 # --- 9. a result names the agent that made it (issue 83): a changed agent is evaluated again, never credited ---
 
 def test_rows_of_other_weights_are_not_credited_to_the_agent(smoke_run, tmp_path):

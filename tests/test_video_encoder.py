@@ -137,6 +137,15 @@ class WrongShape(torch.nn.Module):
         return x.mean(dim=(3, 4))  # (N, k, 3): not (N, D)
 
 
+def test_a_window_of_no_frames_is_refused(tmp_path):
+    tiny = Tiny()
+    tiny.window = 0
+    path = str(tmp_path / "empty_window.pt")
+    torch.jit.save(torch.jit.script(tiny), path)
+    with pytest.raises(ValueError, match=r"empty_window.pt says window 0, input_size 16: both must be >= 1"):
+        ve.load_encoder(path)
+
+
 def test_torchscript_plugin(tmp_path):
     """Resize, ImageNet normalisation and windows (frame 0 repeated at the start) are done by us, batched."""
     path = str(tmp_path / "tiny.pt")
