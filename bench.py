@@ -1,6 +1,7 @@
 """Speed figures for the README: python bench.py [--only render ...]. Each section measures in one run."""
 import argparse
 import os
+import subprocess
 import time
 
 import numpy as np
@@ -320,15 +321,15 @@ def against(rev, measures, rounds=2):
     """Each of `measures` ({label: (unit, higher_is_better, fn(tree))}) for this tree and, with rev, for that git commit's
     source, alternating old and new `rounds` times in this one run so that both see the same load; one line each."""
     import shutil
-    import subprocess
     import tempfile
 
     trees = {"this tree": os.path.dirname(os.path.abspath(__file__))}
     if rev:
         trees = {rev: tempfile.mkdtemp(), **trees}
-        archive = subprocess.run(["git", "archive", rev], capture_output=True, check=True).stdout
-        subprocess.run(["tar", "-x", "-C", trees[rev]], input=archive, check=True)
     try:
+        if rev:
+            archive = subprocess.run(["git", "archive", rev], capture_output=True, check=True).stdout
+            subprocess.run(["tar", "-x", "-C", trees[rev]], input=archive, check=True)
         for label, (unit, higher, measure) in measures.items():
             values = {name: [] for name in trees}
             for _ in range(rounds):
@@ -418,5 +419,9 @@ if __name__ == "__main__":
     parser.add_argument("--against", metavar="REV", help="phase1, finetune, collect, baselines: also time this git commit's code, in the same run "
                         "(e.g. 3e0cd69)")
     args = parser.parse_args()
+    if args.against and not set(args.only) & set(AGAINST):
+        parser.error(f"--against times {', '.join(AGAINST)} only: add one of them to --only, or drop --against")
+    if args.against and subprocess.run(["git", "rev-parse", "--verify", "--quiet", args.against + "^{commit}"], capture_output=True).returncode:
+        parser.error(f"--against {args.against}: not a commit of this repository (git log --oneline lists them)")
     for name in args.only:
         SECTIONS[name](args.against) if name in AGAINST else SECTIONS[name]()

@@ -86,24 +86,50 @@ def build_models(cfgs, obs_shape, action_dim, p_dim, device):
 def stored_configs(ckpt, path):
     """A checkpoint's configs {component: dataclass}. A field it lacks came after it was written and reads as today's
     default; a field since deleted (REMOVED) is dropped at its off value, and a one-line error otherwise."""
+    damaged = f"{path} is damaged or not this project's checkpoint"
+    if not isinstance(ckpt.get("config"), dict) or set(ckpt["config"]) != set(COMPONENTS):
+        raise ValueError(f"{damaged}: its config names {sorted(ckpt.get('config') or [])}, not {sorted(COMPONENTS)}")
     cfgs = {}
     for name, fields in ckpt["config"].items():
         cls, prefix = COMPONENTS[name]
-        known = {f.name for f in dataclasses.fields(cls)}
+        known = {f.name: f.default for f in dataclasses.fields(cls)}
         for field, value in fields.items():
             if field not in known and REMOVED.get(name, {}).get(field, object()) != value:
                 raise ValueError(f"{path} was trained with --{prefix}{field.replace('_', '-')} {value}, a variant measured worse and deleted "
                                  f"(docs/ablations.md names the commit that had it): load it with that commit's code")
+            kind = type(known.get(field, value))
+            if not isinstance(value, (int, float) if kind is float else kind) or isinstance(value, bool) != (kind is bool):
+                raise ValueError(f"{damaged}: its config {name}.{field} is {value!r}, not of type {kind.__name__}")
         cfgs[name] = cls(**{k: v for k, v in fields.items() if k in known})
+    if cfgs["train"].preset not in PRESETS["train"]:
+        raise ValueError(f"{damaged}: its preset {cfgs['train'].preset!r} is not one of {', '.join(PRESETS['train'])}")
     return cfgs
+
+
+def check_weights(ckpt, models, path):
+    """A checkpoint's weights have the names and shapes of `models` (built from its config, on the meta device where
+    only this is asked: no memory), or a one-line error naming the file and the first difference."""
+    for name, model in models.items():
+        want, has = model.state_dict(), ckpt["models"].get(name)
+        if not isinstance(has, dict):
+            raise ValueError(f"{path} is damaged or not this project's checkpoint: it has no weights of the {name}")
+        for key in sorted(want.keys() | has.keys()):
+            shapes = [tuple(d[key].shape) if key in d and hasattr(d[key], "shape") else None for d in (want, has)]
+            if shapes[0] != shapes[1]:
+                raise ValueError(f"{path} is damaged or not this project's checkpoint: {name}.{key} is {shapes[1]} where its config "
+                                 f"makes {shapes[0]}")
 
 
 def load_run(run_dir, device="cpu", env=None):
     """A trained run: (configs, models, checkpoint metadata), checked against --env and its folder's name
     (rundir.run_checkpoint). Errors name the command that makes one."""
     ckpt = rundir.run_checkpoint(run_dir, device, env)
-    cfgs = stored_configs(ckpt, os.path.join(run_dir, "checkpoint.pt"))
-    models = build_models(cfgs, ckpt["obs_shape"], ckpt["action_dim"], ckpt["p_dim"], device)
+    path = os.path.join(run_dir, "checkpoint.pt")
+    cfgs = stored_configs(ckpt, path)
+    shapes = (ckpt["obs_shape"], ckpt["action_dim"], ckpt["p_dim"])
+    with torch.device("meta"):  # names and shapes checked before any memory is taken
+        check_weights(ckpt, build_models(cfgs, *shapes, "meta"), path)
+    models = build_models(cfgs, *shapes, device)
     for name, model in models.items():
         model.load_state_dict(ckpt["models"][name])
     return cfgs, models, ckpt
@@ -167,13 +193,18 @@ def prepare_data(cfgs):
     same_kind = all(has.get(k) == v for k, v in dataclasses.asdict(want).items() if k not in counts)
     # a smaller D_body of the same recipe (the preset's older, smaller default) grows; another kind passed by --data
     # (e.g. shorter episodes) is used as it is
-    fewer = [k for k in counts if has.get(k, 0) < getattr(want, k)] if same_kind or not has else []
+    fewer = [f"{k} {has.get(k, 0)} < {getattr(want, k)}" for k in counts if has.get(k, 0) < getattr(want, k)] if same_kind or not has else []
+    if lost := [n for n in has.get("episodes", []) if not os.path.exists(os.path.join(folder, n))]:  # deleted since
+        if not same_kind:
+            raise ValueError(f"D_body at {folder} lacks {len(lost)} of the episodes its {collect.COMPLETE} lists ({lost[0]}, ...): "
+                             f"collect them again with the settings that file names (python collect.py --env {tc.env} --data ...)")
+        fewer.append(f"{len(lost)} of its episodes deleted")
     if has and not same_kind:
         other = [f"{k} {has.get(k)} (preset {v})" for k, v in dataclasses.asdict(want).items() if k not in counts and has.get(k) != v]
         print(f"D_body at {folder} was collected with {', '.join(other)}: used as it is; `python collect.py --env {tc.env} "
               f"--data <another folder>` collects the preset's")
     if fewer:
-        print(f"D_body at {folder} is not complete ({', '.join(f'{k} {has.get(k, 0)} < {getattr(want, k)}' for k in fewer)}): "
+        print(f"D_body at {folder} is not complete ({', '.join(fewer)}): "
               f"collecting what is missing (python collect.py --env {tc.env} --preset {tc.preset})")
         collect.collect_body(tc.env, want, tc.data, os.cpu_count(), tc.encoder)
     if not all(os.path.isdir(os.path.join(tc.data, "demos", f"{tc.env}_{task}_side")) for task in envs.TASKS):
@@ -196,6 +227,12 @@ def demo_folder(cfgs, demo, view):
     body, _, task = demo.rpartition("_")
     if body not in envs.BODIES or task not in envs.TASKS:
         raise ValueError(f"unknown demo {demo!r}: valid demos are {', '.join(b + '_' + t for b in envs.BODIES for t in envs.TASKS)}")
+    # the folder a checkpoint names is followed only where it is the preset's or a data folder of this project (the
+    # run's D_body or demos in it): a run folder from elsewhere never makes this project write at a place of its choosing
+    ours = (os.path.join(tc.data, tc.env, collect.COMPLETE), os.path.join(tc.data, "demos"))
+    if os.path.normpath(tc.data) != os.path.normpath(DATA[tc.preset]) and not any(os.path.exists(p) for p in ours):
+        raise ValueError(f"the run's checkpoint names the data folder {tc.data}, which holds neither D_body nor demos: not followed; "
+                         f"put the run's data back there, or train a run on yours")
     os.makedirs(os.path.join(tc.data, "demos"), exist_ok=True)
     lock = os.open(os.path.join(tc.data, "demos"), os.O_RDONLY)
     try:  # table shards in parallel: one collects, the others wait on the folder's lock, then find the episodes on disk

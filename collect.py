@@ -24,6 +24,7 @@ Features are a second pass over stored pixels (`--features`), so a new encoder n
 """
 import argparse
 import contextlib
+import glob
 import json
 import multiprocessing
 import os
@@ -45,7 +46,7 @@ from video_encoder import check_same_encoder, load_encoder
 
 KEYS = {"state": np.float32, "pixels": np.uint8, "action": np.float32, "reward": np.float32, "is_first": np.bool_, "p": np.float32}
 META = ("encoder", "body", "task", "view", "source", "return")
-COMPLETE = "collection.json"  # written into data/<body>/ once all of D_body is on disk: its CollectConfig
+COMPLETE = "collection.json"  # written into data/<body>/ once all of D_body is on disk: its CollectConfig and episodes
 
 
 @dataclass
@@ -317,9 +318,11 @@ def run_jobs(jobs, encoder_spec, workers, desc):
 
 
 def recompute_features(data, encoder_spec):
-    """Second pass: rewrite `p` of every episode under `data` whose encoder differs from encoder_spec's."""
+    """Second pass: rewrite `p` of every episode of the collection at `data` (data/<body>/, data/demos/*/; never another
+    collection nested inside it, such as data/smoke) whose encoder differs from encoder_spec's."""
     encoder = load_encoder(encoder_spec)
-    paths = sorted(os.path.join(d, n) for d, _, names in os.walk(data) for n in names if n.endswith(".npz") and not n.endswith(".tmp.npz"))
+    folders = [os.path.join(data, body) for body in envs.BODIES] + sorted(glob.glob(os.path.join(glob.escape(data), "demos", "*")))
+    paths = [os.path.join(d, n) for d in folders if os.path.isdir(d) for n in sorted(os.listdir(d)) if n.endswith(".npz") and not n.endswith(".tmp.npz")]
     for path in tqdm(paths, desc=f"features ({encoder.name})"):
         with np.load(path) as f:
             episode = {k: f[k] for k in f.files}
@@ -336,7 +339,8 @@ def collect_body(body, cfg, data="data", workers=2, encoder="default"):
     if os.path.exists(os.path.join(folder, COMPLETE)):  # not complete until this collection is
         os.remove(os.path.join(folder, COMPLETE))
     run_jobs(jobs, encoder, workers, f"D_body {body}")
-    rundir.atomic_write(os.path.join(folder, COMPLETE), lambda f: f.write(json.dumps(asdict(cfg)).encode()))
+    episodes = sorted(os.path.basename(path) for paths, _ in jobs for path in paths)  # what a complete D_body holds
+    rundir.atomic_write(os.path.join(folder, COMPLETE), lambda f: f.write(json.dumps({**asdict(cfg), "episodes": episodes}).encode()))
     scores = {task: [] for task in BODY_TASKS}  # what cloning can reach: the task episodes' quality
     for paths, job in jobs:
         if job["kind"] in scores:

@@ -33,9 +33,13 @@ import weakref
 
 os.environ.setdefault("MUJOCO_GL", "egl")  # headless rendering on CPU (Mesa); OSMesa is not installed
 
-import mujoco
+try:  # MuJoCo loads its GL backend on import: another MUJOCO_GL may be missing here (OSMesa: an AttributeError)
+    import mujoco
+    from dm_control import mujoco as dm_mujoco
+except (AttributeError, ImportError, RuntimeError) as error:
+    raise SystemExit(f"error: MuJoCo does not load with MUJOCO_GL={os.environ['MUJOCO_GL']} ({type(error).__name__}: {error}); "
+                     "unset it or set MUJOCO_GL=egl (headless Mesa, what this project renders with)") from None
 import numpy as np
-from dm_control import mujoco as dm_mujoco
 from dm_control.suite import common
 from dm_control.suite.utils import randomizers
 from dm_control.utils import rewards

@@ -217,7 +217,10 @@ def read_goal_reaching(run_dir):
     path, again = os.path.join(run_dir, "goal_reaching.json"), f"run `python train.py --evaluate --run-dir {run_dir}`"
     if not os.path.exists(path):
         raise FileNotFoundError(f"no {path}: {again} first")
-    record = json.load(open(path))
+    try:
+        record = json.load(open(path))
+    except json.JSONDecodeError:
+        raise ValueError(f"{path} is cut or damaged (not JSON): {again} again") from None
     if "weights" not in record:
         raise ValueError(f"{path} was written before results named their agent: {again} again")
     now = rundir.weights_id(rundir.run_checkpoint(run_dir))
@@ -235,7 +238,7 @@ def learning_curve(run_dir):
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    rows = [json.loads(line) for line in open(os.path.join(run_dir, "metrics.jsonl"))]
+    rows = rundir.read_jsonl(os.path.join(run_dir, "metrics.jsonl"))
     fig, axes = plt.subplots(1, 3, figsize=(13, 3.2))
     series = [("Eq. 4 imagined goal reward -d(s, g)", [("reward", "training goals"), ("reward_reachable", "reachable g", 0),
                                                        ("reward_reachable", "reachable g, pi given another g", 1),
@@ -294,7 +297,7 @@ def reachable_across_runs(run_dirs, last=5):
     when no run logged it."""
     first, end = [], []
     for run_dir in run_dirs:
-        rows = [json.loads(line) for line in open(os.path.join(run_dir, "metrics.jsonl"))]
+        rows = rundir.read_jsonl(os.path.join(run_dir, "metrics.jsonl"))
         rows = [r["reward_reachable"] for r in rows if "reward_reachable" in r]
         if rows:
             first.append(rows[0])
@@ -316,7 +319,7 @@ def gradient_share(run_dirs, last=5):
     the mean of its last `last` rows, then mean +- s.e. over the runs; [] when no run logged them."""
     norms = []
     for run_dir in run_dirs:
-        rows = [json.loads(line) for line in open(os.path.join(run_dir, "metrics.jsonl"))]
+        rows = rundir.read_jsonl(os.path.join(run_dir, "metrics.jsonl"))
         rows = [(r["grad_eq4"], r["grad_bc"]) for r in rows if "grad_eq4" in r][-last:]
         if rows:
             norms.append(np.mean(rows, 0))

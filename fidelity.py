@@ -29,6 +29,12 @@ Spearman-Brown).
     python fidelity.py agents/walker [--out docs/results/fidelity_walker.jsonl]
     python fidelity.py --table docs/results/fidelity_walker.jsonl [--png docs/fidelity_walker.png]
     python fidelity.py agents/walker --ranking [--settings SE-SV] [--episodes 10] [--out docs/results/ranking_walker.jsonl]
+    python fidelity.py agents/walker --distance [--out docs/results/distance_walker.jsonl]
+
+--distance asks Eq. 6-7's question of the same held-out episodes: does the temporal distance d(s_t, goal of frame
+t + k) rise with k (distance_ranking)? Beside d it measures the observations' own distance: a walking or running body
+returns to the same state every ~15 / ~10 steps (a gait's period) and a standing one hardly moves, so no function of
+two states without their history can rank k along one episode, whatever Eq. 7 trains.
 """
 import argparse
 import os
@@ -48,6 +54,7 @@ import rundir
 STARTS = (10, 110, 210, 310)  # t0: where imagination leaves the filter (ours: 4 per 500-step episode, >= 10 steps of context)
 AHEAD = 100  # steps imagined from each start
 HORIZONS = (16, 50, 100)  # the reported k: GenRL's imagination horizon (16), and further
+GAPS = (1, 5, 15, 50, 100)  # --distance: steps from a state to its goal
 
 
 def held_out_episodes(cfgs):
@@ -120,6 +127,19 @@ def markdown(rows):
     return "\n".join(out)
 
 
+def distance_markdown(rows):
+    """Per row, source and kind of goal: d at each gap, d to another episode's frame, both Spearman means."""
+    g = " / ".join(map(str, GAPS))
+    out = [f"| run | update | source | goal | d at k = {g} | another episode's | Spearman(k, d): per episode / per start |",
+           "|---|---|---|---|---|---|---|"]
+    for r in rows:
+        for name, kinds in r["distance"].items():
+            for kind, m in kinds.items():
+                out.append(f"| {r['run']} | {r['step']} | {name} | {kind} | {' / '.join(f'{v:.2f}' for v in m['d'])} | {m['other']:.2f} "
+                           f"| {m['rho_episode']:.2f} / {m['rho_start']:.2f} |")
+    return "\n".join(out)
+
+
 def curve_markdown(rows):
     """One line per row (a run at an update), for a learning curve: the cosine imagined at each horizon averaged over the
     four tasks' demos, at 50 steps per source, and the held-out recon of D_body."""
@@ -165,6 +185,33 @@ def plot(rows, path):
 
 
 @torch.no_grad()
+@torch.no_grad()
+def distance_ranking(wm, vae, dist_net, episodes, gaps=GAPS, every=10):
+    """Eq. 6-7's promise on whole episodes (E of length L): d(s_t, goal of frame t + k) for t = 10, 20, ... and k in
+    `gaps`, the goal as the filtered posterior state ('post') and as the goal encoder's q(s | p_{t+k}) ('enc'), and the
+    same distance for the observations themselves ('obs': |symlog o_t - symlog o_{t+k}|, what a state without history
+    tells apart; state observations only). Per kind: 'd' (len(gaps),) means, 'other' d to another episode's frame
+    t + 1, 'rho_episode' the mean over episodes of Spearman(k, d averaged over t), 'rho_start' the mean over (episode,
+    t) of Spearman(k, d)."""
+    device = next(wm.parameters()).device
+    obs, action, is_first, p = (stack(episodes, k, device) for k in (wm.cfg.obs, "action", "is_first", "p"))
+    t = torch.arange(10, obs.shape[1] - max(gaps), every, device=device)
+    post, _ = wm.observe(obs, action, is_first, sample=False)
+    feat, x = wm.feat(post), wm._target(obs)
+    kinds = {"post": (dist_net, feat, feat), "enc": (dist_net, feat, vae.goal(p))}  # d, from, to
+    if wm.cfg.obs == "state":
+        kinds["obs"] = (lambda a, b: (a - b).norm(dim=-1), x, x)
+    out = {}
+    for kind, (d, start, goal) in kinds.items():
+        ahead = torch.stack([d(start[:, t], goal[:, t + k]) for k in gaps]).cpu().numpy()  # (K, E, starts)
+        other = d(start[:, t], goal.roll(1, 0)[:, t + 1])
+        rank = lambda d_k: evaluate.spearman(np.arange(len(gaps)), d_k)
+        out[kind] = {"d": ahead.mean((1, 2)).round(4).tolist(), "other": round(other.mean().item(), 4),
+                     "rho_episode": round(float(np.mean([rank(ahead[:, e].mean(1)) for e in range(len(obs))])), 3),
+                     "rho_start": round(float(np.nanmean([rank(ahead[:, e, i]) for e in range(len(obs)) for i in range(len(t))])), 3)}
+    return out
+
+
 def imagined_objective(models, cfgs, task, goals, demo_p, ot_cfg, starts=256, seed=0):
     """Eq. 5's J of each goal: the mean OT reward r^ot of the frozen policy's imagined rollouts (the quantity L_GI's
     lambda-returns estimate), from goal-encoder states of demo frames t0 matched against the frames after t0, as
@@ -263,13 +310,17 @@ def main():
     parser.add_argument("--curve", action="store_true", help="with --table: one line per row (a learning curve), not one per source")
     parser.add_argument("--ranking", action="store_true", help="the functional test: Eq. 5's J against real scores (default --out "
                         "docs/results/ranking_<body>.jsonl; cells already there are skipped)")
+    parser.add_argument("--distance", action="store_true", help="Eq. 6-7: does d(s_t, goal of frame t + k) rise with k on held-out "
+                        "episodes (default --out docs/results/distance_<body>.jsonl)")
     parser.add_argument("--settings", default="SE-SV,SE-CV", help="with --ranking: the same-body cells (never the cross-domain ones)")
     parser.add_argument("--episodes", type=int, default=10, help="with --ranking: real episodes per goal, shared start states")
     args = parser.parse_args()
     if args.table:
+        if missing := [path for path in args.table if not os.path.isfile(path)]:
+            parser.error(f"{missing[0]}: no such file; pass rows this command wrote (docs/results/<fidelity|ranking|distance>_<body>.jsonl)")
         rows = [r for path in args.table for r in rundir.read_jsonl(path)]
-        if rows and "spearman" in rows[0]:
-            print(ranking_markdown(rows))
+        if rows and ("spearman" in rows[0] or "distance" in rows[0]):
+            print(ranking_markdown(rows) if "spearman" in rows[0] else distance_markdown(rows))
             return
         print(curve_markdown(rows) if args.curve else markdown(rows))
         if args.png:
@@ -282,10 +333,14 @@ def main():
     if args.ranking:
         ranking(args.run, ckpt["step"], cfgs, models, args.settings.split(","), args.episodes, args.out or f"docs/results/ranking_{cfgs['train'].env}.jsonl")
         return
-    row = benchmark(models, held_out_episodes(cfgs), ckpt["step"], args.run)
-    out = args.out or f"docs/results/fidelity_{cfgs['train'].env}.jsonl"
+    if args.distance:
+        row = {"run": args.run, "step": ckpt["step"], "distance": {name: distance_ranking(models["world_model"], models["goal_vae"],
+               models["dist_net"], eps) for name, eps in held_out_episodes(cfgs).items()}}
+    else:
+        row = benchmark(models, held_out_episodes(cfgs), ckpt["step"], args.run)
+    out = args.out or f"docs/results/{'distance' if args.distance else 'fidelity'}_{cfgs['train'].env}.jsonl"
     rundir.append_jsonl(out, row)
-    print(markdown([row]))
+    print(distance_markdown([row]) if args.distance else markdown([row]))
     print("appended to", out)
 
 

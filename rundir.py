@@ -309,6 +309,8 @@ def run_main(main, kept):
         main()
     except (ValueError, FileNotFoundError) as error:  # bad input: one line naming the problem, no traceback
         raise SystemExit(f"error: {error}")
+    except OSError as error:  # a full disk, a read-only folder, a path too long or naming a file: the path, and what is kept
+        raise SystemExit(f"error: {error.strerror or error}: {error.filename or ''} ({kept})")
     except KeyboardInterrupt:
         sys.stdout.flush()
         print(f"\ninterrupted: {kept}", file=sys.stderr, flush=True)

@@ -265,9 +265,12 @@ def run_table(run_dir, ic, oc=None, settings=SETTINGS, shard=(0, 1), methods=("f
 def merge_files(paths):
     """The rows of several results files, each file's latest (rundir.latest); a row in two files counts once, and two files
     that score the same evaluation (rundir.row_key) differently are a one-line error naming both."""
-    merged = {}
+    merged, keys = {}, ("agent", "demo", "view", "method", "seed", "score")
     for path in paths:
-        for r in rundir.latest(rundir.read_jsonl(path)):
+        rows = rundir.read_jsonl(path)
+        if bad := [n for n, r in enumerate(rows, 1) if not isinstance(r, dict) or any(k not in r for k in keys)]:
+            raise ValueError(f"{path}: row {bad[0]} is not a result row (a dict with {', '.join(keys)}); pass files imitate.py or tables.py wrote")
+        for r in rundir.latest(rows):
             have = merged.setdefault(rundir.row_key(r), (path, r))
             if have[1]["score"] != r["score"]:
                 raise ValueError(f"{have[0]} and {path} score {r['method']} seed {r['seed']} on {r['demo']} ({r['view']} view) differently "
@@ -303,6 +306,8 @@ def main():
              if getattr(args, f) != parser.get_default(f) and f not in allowed[mode]] + ([] if mode == "--run" else list(given))
     if extra:
         parser.error(f"--{extra[0].replace('_', '-')} does nothing with {mode}: drop it")
+    if args.min_seeds < 1:
+        parser.error(f"--min-seeds {args.min_seeds}: must be >= 1")
     try:
         budgets = parse_budgets(args.budgets) if args.budgets else None
         settings = rundir.parse_settings(args.settings or (",".join(SETTINGS) if mode == "--run" else "SE-SV,SE-CV"))

@@ -126,6 +126,7 @@ def resume_from(ckpt_path, resume, cfgs, models, optims, encoder, device, rng):
     if stage[0] != stage[1] and ckpt["step"] > min(stage):  # a longer or shorter stage, but only while the run is in it
         raise ValueError(f"{ckpt_path} is at update {ckpt['step']}, past its world-model stage of {stage[0]} updates: pass --wm-steps {stage[0]}")
     check_same_encoder(ckpt["encoder"], encoder.name, ckpt_path)
+    checkpoint.check_weights(ckpt, models, ckpt_path)
     for name, model in models.items():
         model.load_state_dict(ckpt["models"][name])
     models["actor"].load_state_dict(ckpt.get("actor_unpolished", ckpt["models"]["actor"]))  # training goes on from the unpolished actor

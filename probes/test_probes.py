@@ -231,3 +231,19 @@ def test_reward_probe_scores_saved_actors_in_the_real_body_and_in_imagination(sm
     lines = [line.split("|") for line in out.stdout.splitlines() if "|" in line][1:]
     assert [line[0].strip() for line in lines] == ["phase-1 policy, demo 0's zero-shot goal"] + [f"GenRL seed {s} after {GENRL_SMOKE.steps} updates" for s in (0, 1)]
     assert all(-1 <= float(x) <= 1 for line in lines for x in line[2:])  # max-cosine rewards
+
+
+def test_distance_probe_readings_on_a_body_at_rest_and_one_that_moves():
+    """A body at rest for its first half, then moving steadily: every pair in the rest looks alike. Eq. 7's squared
+    error gives such a pair its mean gap; the expectile reading the shortest (lower); the Hilbert reading is 0 at
+    equal states by construction and rises with the gap where the body moves."""
+    probe = probe_script("distance_probe")
+    L = 60
+    ramp = torch.cat([torch.zeros(L // 2), torch.linspace(0, 3, L // 2)])
+    x = ramp[None, :, None].expand(8, L, 2) + torch.arange(8.0)[:, None, None] * 10  # (E, L, 2): an offset per episode
+    fitted = {name: probe.fit(x, x, window=20, updates=200, batch=8, pairs=128, units=32, **kw) for name, kw in probe.READINGS.items() if name != "window100"}
+    with torch.no_grad():
+        rest = {name: d(x[:, 5], x[:, 20]).mean().item() for name, d in fitted.items()}
+        moving = [fitted["hilbert"](x[:, 35], x[:, 35 + k]).mean().item() for k in (0, 5, 15)]
+    assert rest["expectile"] < rest["eq7"] - 0.05, rest
+    assert moving[0] == 0.0 and moving[0] < moving[1] < moving[2], moving

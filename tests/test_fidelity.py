@@ -119,3 +119,19 @@ def test_ranking_rows_on_a_smoke_agent(smoke_run, tmp_path):
     assert all(-1 <= r["spearman_reward"] <= 1 for r in rows) and "mean of 4 cells" in fidelity.ranking_markdown(rows)
     with pytest.raises(ValueError, match="--settings SE-SV,CE-SV: the ranking is measured on same-body cells"):
         fidelity.ranking(smoke_run, ckpt["step"], cfgs, models, ["SE-SV", "CE-SV"], 2, out)
+
+
+def test_distance_ranking_reads_d_at_each_gap_and_the_observations_own_distance():
+    """States that move steadily away: the observations' distance rises with k (Spearman 1 per episode and per start),
+    another episode's frame is farther; d is read from posterior states and from goal-encoder goals alike."""
+    wm, vae, episodes = exact_toy(E=2, L=130)
+    for e, episode in enumerate(episodes):
+        episode["state"] = np.repeat(np.arange(130, dtype=np.float32)[:, None] / 100 + 5 * e, 5, 1)  # a ramp per episode
+    seen = []
+    dist_net = lambda a, b: seen.append(b.shape) or (a - b).norm(dim=-1)  # a stand-in d: the features' own distance
+    out = fidelity.distance_ranking(wm, vae, dist_net, episodes)
+    assert set(out) == {"post", "enc", "obs"} and len(seen) == 2 * (len(fidelity.GAPS) + 1)
+    obs = out["obs"]
+    assert obs["rho_episode"] == obs["rho_start"] == 1.0 and np.all(np.diff(obs["d"]) > 0) and obs["other"] > obs["d"][-1]
+    table = fidelity.distance_markdown([{"run": "toy", "step": 3, "distance": {"walk": out}}])
+    assert "| toy | 3 | walk | obs | " in table and "| 1.00 / 1.00 |" in table

@@ -138,6 +138,44 @@ def test_killed_collection_is_completed_before_training(smoke_data, tmp_path):
     assert sorted(os.listdir(os.path.join(data, "walker"))) == sorted(os.listdir(os.path.join(smoke_data, "walker")))
 
 
+def test_episodes_deleted_from_a_complete_collection_are_collected_again(smoke_data, tmp_path):
+    data = str(tmp_path / "data")
+    shutil.copytree(os.path.join(smoke_data, "walker"), os.path.join(data, "walker"))
+    listed = json.load(open(os.path.join(data, "walker", collect.COMPLETE)))["episodes"]
+    assert sorted(listed) == sorted(n for n in os.listdir(os.path.join(smoke_data, "walker")) if n.endswith(".npz"))
+    for name in ("explore_0001.npz", "walk_0000.npz"):  # collection.json still says complete
+        os.remove(os.path.join(data, "walker", name))
+    cfgs = train.resolve_configs(train_args(data=data, preset="smoke", steps=2, wm_steps=0, eval_steps=2), "smoke")
+    checkpoint.prepare_data(cfgs)
+    assert sorted(os.listdir(os.path.join(data, "walker"))) == sorted(os.listdir(os.path.join(smoke_data, "walker")))
+
+
+def test_features_are_recomputed_for_the_named_collection_only(smoke_data, tmp_path):
+    data = tmp_path / "data"
+    shutil.copytree(os.path.join(smoke_data, "walker"), data / "walker")
+    shutil.copytree(os.path.join(smoke_data, "demos", "walker_run_side"), data / "demos" / "walker_run_side")
+    shutil.copytree(os.path.join(smoke_data, "walker"), data / "smoke" / "walker")  # another collection inside this one
+
+    class Mean(torch.nn.Module):
+        def forward(self, x):  # (N, k, 3, S, S) -> (N, 3)
+            return x.mean(dim=(1, 3, 4)) + 1
+
+    torch.jit.save(torch.jit.script(Mean()), str(tmp_path / "mean.pt"))
+    collect.recompute_features(str(data), str(tmp_path / "mean.pt"))
+    encoder_of = lambda folder: {str(np.load(os.path.join(folder, n))["encoder"]) for n in os.listdir(folder) if n.endswith(".npz")}
+    assert all(e.startswith("torchscript:mean.pt:") for f in (data / "walker", data / "demos" / "walker_run_side") for e in encoder_of(f))
+    assert encoder_of(data / "smoke" / "walker") == encoder_of(os.path.join(smoke_data, "walker")) == {"default-v1"}
+
+
+def test_a_data_folder_named_by_a_checkpoint_from_elsewhere_is_not_followed(smoke_run, tmp_path):
+    elsewhere = tmp_path / "some" / "other" / "place"
+    elsewhere.mkdir(parents=True)
+    run = copy_run(smoke_run, tmp_path, str(elsewhere))
+    with pytest.raises(ValueError, match=r"names the data folder .*/some/other/place, which holds neither D_body nor demos: not followed"):
+        goal_inference.imitate(run, "walker_run", "side", SMOKE_IMITATE, [])
+    assert os.listdir(elsewhere) == [] and not os.path.exists(os.path.join(run, "results.jsonl"))
+
+
 def test_demos_of_two_lengths_are_refused(smoke_run, smoke_data, tmp_path):
     data = str(tmp_path / "data")
     for view in ("side", "diagonal"):
@@ -375,6 +413,25 @@ def test_older_pickled_checkpoint_is_named_and_never_unpickled(smoke_run, tmp_pa
     with open(path, "wb") as f:
         f.write(b"PK\x03\x04 half a zip")
     with pytest.raises(ValueError, match=r"checkpoint.pt: not a readable checkpoint"):
+        checkpoint.load_run(run)
+
+
+@pytest.mark.parametrize("damage, says", [
+    (lambda c: c["config"]["wm"].update(deter=32), r"world_model\.cell\.bias_hh is \(48,\) where its config makes \(96,\)"),
+    (lambda c: c["config"]["wm"].update(deter=10**6), r"world_model\.cell\.bias_hh is \(48,\) where its config makes \(3000000,\)"),  # checked on the meta device: no 12 TB
+    (lambda c: c["models"]["world_model"].update({"encoder.0.weight": torch.zeros(3, 3)}), r"world_model\.encoder\.0\.weight is \(3, 3\)"),
+    (lambda c: c["models"].pop("critic"), r"it has no weights of the critic$"),
+    (lambda c: c["config"].update(foo={}), r"its config names \['ac', 'dist', 'foo', 'goal', 'train', 'wm'\]"),
+    (lambda c: c["config"]["train"].update(preset="huge"), r"its preset 'huge' is not one of smoke, cpu, paper$"),
+    (lambda c: c["config"]["wm"].update(deter="x"), r"its config wm\.deter is 'x', not of type int$"),
+])
+def test_a_damaged_checkpoint_is_named_before_any_model_is_built(smoke_run, tmp_path, damage, says):
+    run = copy_run(smoke_run, tmp_path)
+    path = os.path.join(run, "checkpoint.pt")
+    ckpt = torch.load(path, weights_only=True)
+    damage(ckpt)
+    torch.save(ckpt, path)
+    with pytest.raises(ValueError, match=r"checkpoint.pt is damaged or not this project's checkpoint: " + says):
         checkpoint.load_run(run)
 
 
@@ -639,6 +696,44 @@ def test_an_expert_file_of_another_task_is_refused(tmp_path, monkeypatch):
     monkeypatch.setattr(experts, "expert_path", lambda body, task, step=None: str(tmp_path / "experts" / f"{body}_{task}.pt"))
     with pytest.raises(ValueError, match=r"walker_run.pt holds the expert of walker walk at step .*, not walker run: put the right file back"):
         experts.load_expert("walker", "run")
+
+
+def test_a_full_disk_or_a_path_that_cannot_be_written_ends_in_one_line_naming_it(tmp_path):
+    def full():
+        raise OSError(28, "No space left on device", "runs/x/checkpoint.pt.123.tmp")
+
+    with pytest.raises(SystemExit, match=r"^error: No space left on device: runs/x/checkpoint.pt.123.tmp \(the older checkpoint is kept\)$"):
+        rundir.run_main(full, "the older checkpoint is kept")
+    (tmp_path / "a_file").write_text("")
+    out = subprocess.run([sys.executable, "train.py", "--preset", "smoke", "--run-dir", str(tmp_path / "a_file")], cwd=ROOT, capture_output=True, text=True)
+    assert out.returncode == 1 and out.stderr.strip().startswith(f"error: File exists: {tmp_path / 'a_file'}"), out.stderr[-500:]
+
+
+def test_rows_and_records_that_are_not_what_they_should_be_are_named(smoke_run, tmp_path):
+    for text in ("[1, 2]\n", '{"demo": "walker_run"}\n'):
+        (tmp_path / "rows.jsonl").write_text(text)
+        with pytest.raises(ValueError, match=r"rows.jsonl: row 1 is not a result row \(a dict with agent, demo, view, method, seed, score\)"):
+            tables.merge_files([str(tmp_path / "rows.jsonl")])
+    run = copy_run(smoke_run, tmp_path)
+    out = subprocess.run([sys.executable, "train.py", "--evaluate", "--run-dir", run, "--eval-steps", "5", "--eval-episodes", "1"], cwd=ROOT, capture_output=True, text=True)
+    assert out.returncode == 0, out.stderr[-2000:]
+    path = os.path.join(run, "goal_reaching.json")
+    with open(path, "r+") as f:
+        f.truncate(40)
+    with pytest.raises(ValueError, match=r"goal_reaching.json is cut or damaged \(not JSON\): run `python train.py --evaluate --run-dir .*` again$"):
+        evaluate.read_goal_reaching(run)
+
+
+def test_unusable_command_lines_stop_before_any_work():
+    cases = [(["bench.py", "--only", "components", "--against", "HEAD"], "--against times phase1, finetune, collect, baselines only"),
+             (["bench.py", "--only", "phase1", "--against", "nosuchrev"], "--against nosuchrev: not a commit of this repository"),
+             (["tables.py", "--curves", "docs/results/curves_walker.jsonl", "--min-seeds", "-3"], "--min-seeds -3: must be >= 1")]
+    for argv, says in cases:
+        out = subprocess.run([sys.executable, *argv], cwd=ROOT, capture_output=True, text=True, timeout=120)
+        assert out.returncode == 2 and says in out.stderr, (argv, out.stderr[-500:])
+    # a GL backend MuJoCo cannot load (OSMesa, not installed here, fails the same way; glx is no backend anywhere)
+    out = subprocess.run([sys.executable, "-c", "import envs"], cwd=ROOT, capture_output=True, text=True, env={**os.environ, "MUJOCO_GL": "glx"})
+    assert out.returncode == 1 and out.stderr.startswith("error: MuJoCo does not load with MUJOCO_GL=glx") and "Traceback" not in out.stderr
 
 
 # --- 9. a result names the agent that made it (issue 83): a changed agent is evaluated again, never credited ---

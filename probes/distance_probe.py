@@ -1,0 +1,115 @@
+"""Which reading of Eq. 6-7 makes the temporal distance rank steps, on a trained agent's frozen world model?
+
+The distance network alone is trained afresh on D_body's training episodes (the world model, goal VAE and decoder of
+`--run` frozen; d reads decoded observations, as the cpu preset's), then measured by fidelity.distance_ranking on the
+held-out episodes. Readings, one factor each against Eq. 7 as train.py fits it (`eq7`: pairs i < j drawn uniformly in
+a 50-step window, label (j - i) / 50, squared error, negatives regressed to 1 at weight 0.1, posterior and encoder
+goals alike):
+* `window100`: pairs in 100-step windows, label (j - i) / 100 (the ranking asks for gaps to 100 steps);
+* `expectile`: the regression term an expectile at tau = 0.1 instead of the mean: for a pair of states met at several
+  gaps (a gait's period, a body at rest) d learns the shortest gap seen, a reachability reading (as IQL's expectile
+  value learning, Kostrikov et al. 2022, which HILP uses, Park et al. 2024);
+* `hilbert`: d(s, g) = ||phi(s) - phi(g)|| (HILP's Hilbert representation, Park et al. 2024) with Eq. 7's loss:
+  d(s, s) = 0 and the triangle inequality by construction.
+
+    python probes/distance_probe.py --run agents/walker [--readings eq7,expectile] [--updates 3000] [--seed 0] [--out docs/results/distance_probe_walker.jsonl]
+"""
+import argparse
+import os
+import sys
+
+import torch
+
+sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+import checkpoint  # noqa: E402
+import collect  # noqa: E402
+import distance  # noqa: E402
+import fidelity  # noqa: E402
+import rundir  # noqa: E402
+from world_model import mlp  # noqa: E402
+
+READINGS = {"eq7": {}, "window100": dict(window=100), "expectile": dict(tau=0.1), "hilbert": dict(hilbert=True)}
+
+
+@torch.no_grad()
+def embedded_episodes(models, episodes, chunk=50):
+    """The frozen models' reading of each frame, what d sees: (decoded posterior state, decoded encoder goal), each (E, L, O)."""
+    wm, vae = models["world_model"], models["goal_vae"]
+    x, g = [], []
+    for i in range(0, len(episodes), chunk):
+        part = episodes[i : i + chunk]
+        obs, action, is_first, p = (fidelity.stack(part, k, "cpu") for k in (wm.cfg.obs, "action", "is_first", "p"))
+        post, _ = wm.observe(obs, action, is_first, sample=False)
+        x.append(wm.decoder(wm.feat(post)))
+        g.append(wm.decoder(vae.goal(p)))
+    return torch.cat(x), torch.cat(g)
+
+
+class Reading(torch.nn.Module):
+    """d on embedded observations: an MLP of the pair (Eq. 7's), or ||phi(a) - phi(b)|| (hilbert)."""
+
+    def __init__(self, dim, hilbert=False, units=128, layers=4):
+        super().__init__()
+        self.hilbert = hilbert
+        self.net = mlp(dim, units, 64, layers) if hilbert else mlp(2 * dim, units, 1, layers)
+
+    def forward(self, a, b):
+        a, b = torch.broadcast_tensors(a, b)
+        return (self.net(a) - self.net(b)).norm(dim=-1) if self.hilbert else self.net(torch.cat([a, b], -1)).squeeze(-1)
+
+
+def fit(x, g, window=50, tau=0.5, hilbert=False, updates=3000, batch=16, pairs=1024, weight=0.1, units=128, seed=0):
+    """Eq. 7 (one reading) on windows of `window` steps of (x, g) (E, L, O); tau 0.5 is the squared error."""
+    torch.manual_seed(seed)
+    rng = torch.Generator().manual_seed(seed)
+    d = Reading(x.shape[-1], hilbert, units)
+    opt = torch.optim.Adam(d.parameters(), 3e-4)
+    E, L, _ = x.shape
+    is_first = torch.zeros(batch, window, dtype=torch.bool)
+    for _ in range(updates):
+        episode = torch.randint(E, (batch,), generator=rng)
+        rows = torch.randint(L - window + 1, (batch,), generator=rng)[:, None] + torch.arange(window)
+        xb, gb = x[episode[:, None], rows], g[episode[:, None], rows]
+        drawn = distance.sample_pairs(episode, is_first, pairs, rng)
+        (b, i, j), (b1, t1, b2, t2) = drawn["pos"], drawn["neg"]
+        loss = 0
+        for goal in (xb, gb):  # the later state as the posterior's and as the goal encoder's, as train.py
+            u = (j - i).float() / window - d(xb[b, i], goal[b, j])
+            regression = (2 * torch.where(u < 0, 1 - tau, tau) * u**2).mean()  # tau 0.5: (u)^2, Eq. 7's
+            contrastive = ((d(xb[b1, t1], goal[b2, t2]) - 1) ** 2).mean()
+            loss = loss + (regression + weight * contrastive) / 2
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+    return d
+
+
+def main():
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0], allow_abbrev=False)
+    parser.add_argument("--run", required=True, help="a trained agent, e.g. agents/walker")
+    parser.add_argument("--readings", default=",".join(READINGS), help=f"comma-separated, of {', '.join(READINGS)}")
+    parser.add_argument("--updates", type=int, default=3000)
+    parser.add_argument("--seed", type=int, default=0, help="of d's initialisation and pairs (the frozen models stay the run's)")
+    parser.add_argument("--out", help="append one row per reading (default docs/results/distance_probe_<body>.jsonl)")
+    args = parser.parse_args()
+    readings = args.readings.split(",")
+    if unknown := [r for r in readings if r not in READINGS]:
+        parser.error(f"--readings {unknown[0]}: not one of {', '.join(READINGS)}")
+    torch.set_num_threads(1)
+    cfgs, models, _ = checkpoint.load_run(args.run)
+    tc, wm = cfgs["train"], models["world_model"]
+    body = collect.load_folder(os.path.join(tc.data, tc.env), (wm.cfg.obs, "action", "is_first", "p"))
+    x, g = embedded_episodes(models, [e for k, e in enumerate(body) if k % tc.holdout_every])  # the training episodes
+    out = args.out or f"docs/results/distance_probe_{tc.env}.jsonl"
+    for name in readings:
+        d = fit(x, g, updates=args.updates, seed=args.seed, **READINGS[name])
+        dist = lambda a, b: d(wm.decoder(a), wm.decoder(b))  # noqa: E731  (fidelity.distance_ranking gives posterior features)
+        with torch.no_grad():
+            row = {"run": f"{args.run} d:{name} s{args.seed}", "step": args.updates, "distance": {
+                source: fidelity.distance_ranking(wm, models["goal_vae"], dist, eps) for source, eps in fidelity.held_out_episodes(cfgs).items()}}
+        rundir.append_jsonl(out, row)
+        print(fidelity.distance_markdown([row]), flush=True)
+
+
+if __name__ == "__main__":
+    main()
