@@ -264,7 +264,7 @@ def export_agent(run_dir, out_dir):
     # rows by demo and settings, not by weights): moved, never deleted, to <out_dir>/previous_<n>/
     made = [f for f in ("results.jsonl", "tables.md", "goal_reaching.json", "imitate") if os.path.exists(os.path.join(out_dir, f))]
     if made:
-        old = os.path.join(out_dir, f"previous_{sum(f.startswith('previous_') for f in os.listdir(out_dir))}")
+        old = next(p for n in range(10**6) if not os.path.exists(p := os.path.join(out_dir, f"previous_{n}")))  # the first free
         os.makedirs(old)
         for f in made:
             os.replace(os.path.join(out_dir, f), os.path.join(old, f))

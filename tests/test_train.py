@@ -165,6 +165,12 @@ def test_exported_agent_loads_weights_only_and_acts_like_its_run(smoke_run, tmp_
     checkpoint.export_agent(smoke_run, os.path.dirname(path))
     assert not os.path.exists(os.path.join(os.path.dirname(path), "results.jsonl"))
     assert open(os.path.join(os.path.dirname(path), "previous_0", "results.jsonl")).read() == '{"method": "GIIL-ZS"}\n'
+    shutil.rmtree(os.path.join(os.path.dirname(path), "previous_0"))
+    os.makedirs(os.path.join(os.path.dirname(path), "previous_1"))  # a gap: the next export takes the first free name
+    with open(os.path.join(os.path.dirname(path), "results.jsonl"), "w") as f:
+        f.write('{"method": "GIIL-FT"}\n')
+    checkpoint.export_agent(smoke_run, os.path.dirname(path))
+    assert open(os.path.join(os.path.dirname(path), "previous_0", "results.jsonl")).read() == '{"method": "GIIL-FT"}\n'
     # phase 2's default: the user's own run when there is one, else the shipped agent, saying which
     monkeypatch.chdir(tmp_path)
     assert checkpoint.resolve_run("walker", "cpu") == os.path.join("agents", "walker")
