@@ -13,17 +13,20 @@ goals alike):
   d(s, s) = 0 and the triangle inequality by construction.
 
     python probes/distance_probe.py --run agents/walker [--readings eq7,expectile] [--updates 3000] [--seed 0] [--out docs/results/distance_probe_walker.jsonl]
+    python probes/distance_probe.py --summary docs/results/distance_probe_walker.jsonl
 """
 import argparse
 import os
 import sys
 
+import numpy as np
 import torch
 
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 import checkpoint  # noqa: E402
 import collect  # noqa: E402
 import distance  # noqa: E402
+import evaluate  # noqa: E402
 import fidelity  # noqa: E402
 import rundir  # noqa: E402
 from world_model import mlp  # noqa: E402
@@ -84,14 +87,40 @@ def fit(x, g, window=50, tau=0.5, hilbert=False, updates=3000, batch=16, pairs=1
     return d
 
 
+def summary(rows, sources=("body", "stand", "walk", "run", "jump")):
+    """Per reading, the held-out sources' mean of Spearman(k, d) per episode and per start and of the contrast (d to
+    another episode's frame minus d one step ahead), as mean +- s.e. over the fit seeds' rows."""
+    by = {}
+    for r in rows:
+        by.setdefault(r["run"].rsplit(" s", 1)[0], []).append(r["distance"])
+    out = ["| reading | seeds | goal | Spearman per episode | per start | contrast |", "|---|---|---|---|---|---|"]
+    first = next(iter(by.values()))
+    lines = [(name, fits, kind) for name, fits in by.items() for kind in ("post", "enc")]
+    if "obs" in first[0][sources[0]]:  # the observations' own distance, the same for every reading
+        lines.append(("the observations themselves", first, "obs"))
+    for name, fits, kind in lines:
+        cells = []
+        for read in (lambda m: m["rho_episode"], lambda m: m["rho_start"], lambda m: m["other"] - m["d"][0]):
+            values = [np.mean([read(f[source][kind]) for source in sources]) for f in fits]
+            cells.append(f"{np.mean(values):.2f} +- {evaluate.stderr(values):.2f}")
+        out.append(f"| {name} | {len(fits)} | {kind} | " + " | ".join(cells) + " |")
+    return "\n".join(out)
+
+
 def main():
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0], allow_abbrev=False)
-    parser.add_argument("--run", required=True, help="a trained agent, e.g. agents/walker")
+    parser.add_argument("--run", help="a trained agent, e.g. agents/walker")
+    parser.add_argument("--summary", metavar="JSONL", help="instead: each reading over its fit seeds, from this probe's rows")
     parser.add_argument("--readings", default=",".join(READINGS), help=f"comma-separated, of {', '.join(READINGS)}")
     parser.add_argument("--updates", type=int, default=3000)
     parser.add_argument("--seed", type=int, default=0, help="of d's initialisation and pairs (the frozen models stay the run's)")
     parser.add_argument("--out", help="append one row per reading (default docs/results/distance_probe_<body>.jsonl)")
     args = parser.parse_args()
+    if args.summary:
+        print(summary(rundir.read_jsonl(args.summary)))
+        return
+    if not args.run:
+        parser.error("pass --run (a trained agent) or --summary JSONL")
     readings = args.readings.split(",")
     if unknown := [r for r in readings if r not in READINGS]:
         parser.error(f"--readings {unknown[0]}: not one of {', '.join(READINGS)}")
