@@ -233,6 +233,8 @@ def demo_folder(cfgs, demo, view):
     if os.path.normpath(tc.data) != os.path.normpath(DATA[tc.preset]) and not any(os.path.exists(p) for p in ours):
         raise ValueError(f"the run's checkpoint names the data folder {tc.data}, which holds neither D_body nor demos: not followed; "
                          f"put the run's data back there, or train a run on yours")
+    if tc.encoder != "default" and not os.path.isdir(os.path.join(tc.data, "demos", f"{demo}_{view}")):  # said, not followed silently
+        print(f"{demo}'s demos are collected with the run's video encoder {tc.encoder} (the file its checkpoint names)")
     os.makedirs(os.path.join(tc.data, "demos"), exist_ok=True)
     lock = os.open(os.path.join(tc.data, "demos"), os.O_RDONLY)
     try:  # table shards in parallel: one collects, the others wait on the folder's lock, then find the episodes on disk

@@ -722,6 +722,12 @@ def test_rows_and_records_that_are_not_what_they_should_be_are_named(smoke_run, 
         f.truncate(40)
     with pytest.raises(ValueError, match=r"goal_reaching.json is cut or damaged \(not JSON\): run `python train.py --evaluate --run-dir .*` again$"):
         evaluate.read_goal_reaching(run)
+    metrics = os.path.join(run, "metrics.jsonl")
+    lines = open(metrics).read().split("\n")
+    with open(metrics, "w") as f:
+        f.write("\n".join([lines[0][:30]] + lines[1:]))  # a cut row before the last
+    with pytest.raises(ValueError, match=r"metrics.jsonl: line 1 is not a JSON row .*; delete that line$"):
+        evaluate.learning_curve(run)
 
 
 def test_unusable_command_lines_stop_before_any_work():
