@@ -600,14 +600,10 @@ def test_an_empty_episode_file_is_collected_again(smoke_data, tmp_path):
     assert sorted(os.listdir(os.path.dirname(path))) == ["00.npz", "01.npz"]
 
 
-def test_a_video_cut_off_half_way_leaves_the_old_file(tmp_path, monkeypatch):
-    path = str(tmp_path / "walker_run_side_GIIL-FT_s0.mp4")
-    with open(path, "wb") as f:
-        f.write(b"the video of an earlier run")
-    frames = np.zeros((6, 64, 64, 3), np.uint8)
-    writer = evaluate.cv2.VideoWriter
+def cut_writer(writer, frames, killed):
+    """cv2.VideoWriter that writes `frames` frames, then raises (a kill) or writes nothing more (a full disk, unreported)."""
 
-    class Dying:  # a writer killed after its second frame
+    class Cut:
         def __init__(self, *args):
             self.writer, self.frames = writer(*args), 0
 
@@ -616,11 +612,21 @@ def test_a_video_cut_off_half_way_leaves_the_old_file(tmp_path, monkeypatch):
 
         def write(self, frame):
             self.frames += 1
-            if self.frames == 3:
+            if self.frames > frames and killed:
                 raise RuntimeError("killed")
-            self.writer.write(frame)
+            if self.frames <= frames:
+                self.writer.write(frame)
 
-    monkeypatch.setattr(evaluate.cv2, "VideoWriter", Dying)
+    return Cut
+
+
+def test_a_video_cut_off_half_way_leaves_the_old_file(tmp_path, monkeypatch):
+    path = str(tmp_path / "walker_run_side_GIIL-FT_s0.mp4")
+    with open(path, "wb") as f:
+        f.write(b"the video of an earlier run")
+    frames = np.zeros((6, 64, 64, 3), np.uint8)
+    writer = evaluate.cv2.VideoWriter
+    monkeypatch.setattr(evaluate.cv2, "VideoWriter", cut_writer(writer, 2, killed=True))  # killed after its second frame
     with pytest.raises(RuntimeError, match="killed"):
         evaluate.write_video(path, frames, frames)
     assert open(path, "rb").read() == b"the video of an earlier run" and os.listdir(tmp_path) == [os.path.basename(path)]
@@ -634,21 +640,7 @@ def test_a_video_that_does_not_reopen_whole_keeps_the_old_file(tmp_path, monkeyp
     path = str(tmp_path / "walker_run_side_GIIL-FT_s0.mp4")
     with open(path, "wb") as f:
         f.write(b"the video of an earlier run")
-    writer = evaluate.cv2.VideoWriter
-
-    class Full:  # writes its first two frames, then nothing (ENOSPC is not reported)
-        def __init__(self, *args):
-            self.writer, self.frames = writer(*args), 0
-
-        def __getattr__(self, name):
-            return getattr(self.writer, name)
-
-        def write(self, frame):
-            self.frames += 1
-            if self.frames <= 2:
-                self.writer.write(frame)
-
-    monkeypatch.setattr(evaluate.cv2, "VideoWriter", Full)
+    monkeypatch.setattr(evaluate.cv2, "VideoWriter", cut_writer(evaluate.cv2.VideoWriter, 2, killed=False))  # then silent
     with pytest.raises(OSError, match=r"walker_run_side_GIIL-FT_s0.mp4: the video reopened with 2 of its 6 frames \(disk full\?\)"):
         evaluate.write_video(path, np.zeros((6, 64, 64, 3), np.uint8), np.zeros((6, 64, 64, 3), np.uint8))
     assert open(path, "rb").read() == b"the video of an earlier run" and os.listdir(tmp_path) == [os.path.basename(path)]
