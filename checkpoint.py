@@ -4,7 +4,9 @@ Below train.py (phase 1), goal_inference.py (phase 2) and the baselines (genrl.p
 each other:
   TrainConfig, COMPONENTS  the configs of a run, one dataclass per component, and each one's flag prefix
   build_models, load_run   a run's models, fresh or from runs/<name>/checkpoint.pt (rundir.run_checkpoint checks it)
+  stored_configs, check_weights  a checkpoint's configs and weights, checked before any model is built
   default_run_dir, resolve_run   where train.py writes a run, and which one phase 2 uses when none is named
+  work_folder              where phase 2 writes for a run: the run's folder, runs/agent_<body> for a shipped agent
   prepare_data             the run's D_body (collected first where incomplete) as training segments and held-out episodes
   body_segments, demo_folder     the run's D_body as segments, and a demo folder (collected first where missing)
   export_agent             a trained run as a shipped agent, agents/<body>/checkpoint.pt: weights only (train.py --export)
