@@ -285,7 +285,11 @@ print((time.perf_counter() - start) / 4)
 BASELINE_UPDATE = """
 import dataclasses, sys, time
 import numpy as np, torch
-import aime_nob, checkpoint, genrl
+import checkpoint
+try:  # this layout, or a commit's from before baselines/
+    from baselines import aime_nob, genrl
+except ImportError:
+    import aime_nob, genrl
 torch.set_num_threads(1)
 cell = genrl.load_cell(sys.argv[1], "walker_walk", "side", sys.argv[4])
 models, cfgs, n = cell["models"], cell["cfgs"], int(sys.argv[3])

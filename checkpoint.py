@@ -1,6 +1,6 @@
 """Eq. 1's two levels share one phase-1 run: its configs and models, and its data.
 
-Below train.py (phase 1), goal_inference.py (phase 2) and the baselines (genrl.py, aime_nob.py), which import it and never
+Below train.py (phase 1), goal_inference.py (phase 2) and the baselines (baselines/genrl.py, baselines/aime_nob.py), which import it and never
 each other:
   TrainConfig, COMPONENTS  the configs of a run, one dataclass per component, and each one's flag prefix
   build_models, load_run   a run's models, fresh or from runs/<name>/checkpoint.pt (rundir.run_checkpoint checks it)

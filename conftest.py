@@ -11,7 +11,7 @@ sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 
 import checkpoint  # noqa: E402
 import collect  # noqa: E402
-import genrl  # noqa: E402
+from baselines import genrl  # noqa: E402
 import presets  # noqa: E402
 import train  # noqa: E402
 

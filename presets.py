@@ -55,7 +55,7 @@ PRESETS = {
     "ot": {"smoke": dict(iters=20), "cpu": {}, "paper": {}},  # ours: toy
     # GIIL-online (online.py, ours after Sec. 6): OnlineConfig
     "online": {"smoke": dict(schedule=((2, 1), (1, 1)), seeds=1), "cpu": {}, "paper": {}},  # ours: toy
-    # the baselines (genrl.py, aime_nob.py): GenRLConfig, AIMENoBConfig; no paper preset (tables.py --run runs their cpu one)
+    # the baselines (baselines/genrl.py, baselines/aime_nob.py): GenRLConfig, AIMENoBConfig; no paper preset (tables.py --run runs their cpu one)
     "genrl": {"smoke": dict(steps=3, starts=8, target_len=5, align_window=3, seeds=2, eval_steps=10), "cpu": {}},  # ours: toy
     "aime_nob": {"smoke": dict(env_steps=20, episode_steps=10, updates=2, starts=8, seeds=2, eval_steps=10), "cpu": {}},  # ours: toy
 }

@@ -10,7 +10,7 @@ docs/results/{online,curves,table}_<agent>.jsonl --budgets genrl=1000,aime-nob=5
 names the budgets it shows).
 
 Score against compute (ours): every method's score against the minutes one seed took, the baselines at each budget
-they were run at (genrl.py / aime_nob.py --eval-at), from rows of any results.jsonl:
+they were run at (baselines/genrl.py / baselines/aime_nob.py --eval-at), from rows of any results.jsonl:
 
     python tables.py --curves runs/<name>/results.jsonl [docs/results/*.jsonl] --png docs/curves_<agent>.png
 """
@@ -21,20 +21,19 @@ import os
 
 import numpy as np
 
-import aime_nob
 import checkpoint
 import collect
 import envs
 import evaluate
-import genrl
 import goal_inference
 import online
 import rundir
+from baselines import aime_nob, genrl
 from envs import SETTINGS
 from presets import PRESETS
 
 
-BASELINES = {"genrl": "GenRL", "aime-nob": "AIME-NoB"}  # --methods name -> method of the rows (genrl.py, aime_nob.py)
+BASELINES = {"genrl": "GenRL", "aime-nob": "AIME-NoB"}  # --methods name -> method of the rows (baselines/genrl.py, baselines/aime_nob.py)
 SHOWN = ("GIIL-ZS", "GIIL-ZS (demo 0)", "GIIL-FT")  # the columns of every table; the other methods where they have rows
 
 # The paper's normalised scores, per setting (SE-SV, SE-CV, CE-SV, CE-CV) the columns PAPER_METHODS: Tables 1-2 ("all")
@@ -288,7 +287,7 @@ def main():
     mode.add_argument("--table", nargs="+", metavar="ROWS", help="results.jsonl files of one agent: its tables")
     mode.add_argument("--curves", nargs="+", metavar="ROWS", help="results.jsonl files of one agent: score against compute")
     parser.add_argument("--methods", help="with --run: comma-separated, of finetune (GIIL-FT; the default), online (GIIL-online), genrl, "
-                        "aime-nob (the baselines, genrl.py and aime_nob.py with their --preset); GIIL-ZS comes with any goal search")
+                        "aime-nob (the baselines, baselines/genrl.py and baselines/aime_nob.py with their --preset); GIIL-ZS comes with any goal search")
     parser.add_argument("--settings", help="with --run: the settings to run now (default all); with --curves: the settings averaged "
                         "(default the same-body ones), comma-separated")
     parser.add_argument("--shard", metavar="I/N", help="with --run: run only cells I, I + N, ... of those of --settings (N processes, one table)")

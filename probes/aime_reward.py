@@ -1,4 +1,4 @@
-"""Does AIME-NoB's OT reward rank its own episodes as the task does? aime_nob.py keeps, in each seed's training state
+"""Does AIME-NoB's OT reward rank its own episodes as the task does? baselines/aime_nob.py keeps, in each seed's training state
 (runs/<name>/baselines/AIME-NoB_<demo>_<view>_s<seed>_*.pt), a log of every episode it collected: the sum of its OT
 labels (what the agent is trained to raise) and its task return (never shown to the agent). Per seed: Spearman's rank
 correlation of the two over the seed's episodes, and the task return of its first and last 10 episodes. A reward that
@@ -21,7 +21,7 @@ import torch
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 import collect  # noqa: E402
 import envs  # noqa: E402
-import genrl  # noqa: E402
+from baselines import genrl  # noqa: E402
 import ot_reward  # noqa: E402
 import rundir  # noqa: E402
 from evaluate import spearman  # noqa: E402
@@ -38,7 +38,7 @@ def main():
         parser.error("--body needs a stand cell: only the stand return is read off a state")
     paths = sorted(glob.glob(os.path.join(args.run, "baselines", f"AIME-NoB_{args.demo}_{args.view}_s*_*.pt")))
     if not paths:
-        raise ValueError(f"no AIME-NoB training state of {args.demo} ({args.view} view) in {args.run}/baselines: run aime_nob.py on that cell first")
+        raise ValueError(f"no AIME-NoB training state of {args.demo} ({args.view} view) in {args.run}/baselines: run baselines/aime_nob.py on that cell first")
     print(f"{args.demo} ({args.view} view) | env steps | episodes | Spearman(OT sum, task return) | task return: first 10 / last 10")
     for path in paths:
         state = rundir.load_checkpoint(path)

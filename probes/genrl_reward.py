@@ -1,5 +1,5 @@
 """Does GenRL's reward (genrl.aligned_reward) rank real behaviour as the task score does, and does its actor reach in
-the real body what it reaches in imagination? For one cell, each GenRL actor saved by genrl.py (the training state
+the real body what it reaches in imagination? For one cell, each GenRL actor saved by baselines/genrl.py (the training state
 at its last budget, runs/<name>/baselines/GenRL_<demo>_<view>_s<seed>_*.pt) and, for reference, the phase-1 policy
 given demo 0's zero-shot goal (the GIIL-ZS (demo 0) column):
 * task score: Eq. 8's normalised score of `episodes` real episodes (evaluate.run_episodes, env seeds 30000 + ...);
@@ -24,7 +24,7 @@ import torch
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 import envs  # noqa: E402
 import evaluate  # noqa: E402
-import genrl  # noqa: E402
+from baselines import genrl  # noqa: E402
 import policy  # noqa: E402
 import rundir  # noqa: E402
 from presets import PRESETS  # noqa: E402
@@ -56,7 +56,7 @@ def main():
     parser.add_argument("demo")
     parser.add_argument("view", choices=envs.VIEWS)
     parser.add_argument("--episodes", type=int, default=2)
-    parser.add_argument("--preset", default="cpu", choices=PRESETS["genrl"], help="genrl.py's preset the actors were trained with (its target, window)")
+    parser.add_argument("--preset", default="cpu", choices=PRESETS["genrl"], help="baselines/genrl.py's preset the actors were trained with (its target, window)")
     args = parser.parse_args()
     torch.manual_seed(0)
     cell = genrl.load_cell(args.run, args.demo, args.view)
@@ -66,7 +66,7 @@ def main():
     target = genrl.target_states(models, p, gc.target_len)
     paths = sorted(glob.glob(os.path.join(args.run, "baselines", f"GenRL_{args.demo}_{args.view}_s*_*.pt")))
     if not paths:
-        raise ValueError(f"no GenRL training state of {args.demo} ({args.view} view) in {args.run}/baselines: run genrl.py on that cell first")
+        raise ValueError(f"no GenRL training state of {args.demo} ({args.view} view) in {args.run}/baselines: run baselines/genrl.py on that cell first")
     print(f"{args.demo} ({args.view} view), {args.episodes} episodes each | task score | real reward | imagined reward")
     with torch.no_grad():
         zero_shot = models["goal_vae"].goal(p[-1])[None]

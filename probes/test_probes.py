@@ -10,13 +10,12 @@ import numpy as np
 import pytest
 import torch
 
-import aime_nob
 import checkpoint
 import evaluate
-import genrl
 import ot_reward
 import presets
 import video_encoder
+from baselines import aime_nob, genrl
 from conftest import probe_script
 
 GENRL_SMOKE = genrl.GenRLConfig(**presets.PRESETS["genrl"]["smoke"])

@@ -1,4 +1,4 @@
-"""aime_nob.py: the episode's OT reward on hand-made cases, one seed's online loop, the command end to end."""
+"""baselines/aime_nob.py: the episode's OT reward on hand-made cases, one seed's online loop, the command end to end."""
 import dataclasses
 import glob
 import json
@@ -12,11 +12,10 @@ import pytest
 import torch
 import torch.nn.functional as F
 
-import aime_nob
 import checkpoint
-import genrl
 import ot_reward
 import presets
+from baselines import aime_nob, genrl
 from conftest import kill_at_evaluation
 
 SMOKE = aime_nob.AIMENoBConfig(**presets.PRESETS["aime_nob"]["smoke"])
@@ -81,7 +80,7 @@ def test_cell_end_to_end_and_resumable(smoke_run, tmp_path):
 def test_command_line(smoke_run, tmp_path):
     run = str(tmp_path / "run")
     shutil.copytree(smoke_run, run)
-    command = [sys.executable, "aime_nob.py", "--preset", "smoke", "--seeds", "1", "--run", run, "--demo", "walker_run"]
+    command = [sys.executable, "baselines/aime_nob.py", "--preset", "smoke", "--seeds", "1", "--run", run, "--demo", "walker_run"]
     out = subprocess.run(command + ["--view", "diagonal"], cwd=ROOT, capture_output=True, text=True)
     assert out.returncode == 0, out.stderr[-2000:]
     assert "AIME-NoB walker imitating walker_run (diagonal view, SE-CV): normalised score" in out.stdout

@@ -1,4 +1,4 @@
-"""genrl.py: the sequence-aligned similarity reward on hand-made cases, a frozen world model, the command end to end."""
+"""baselines/genrl.py: the sequence-aligned similarity reward on hand-made cases, a frozen world model, the command end to end."""
 import dataclasses
 import json
 import os
@@ -11,8 +11,8 @@ import pytest
 import torch
 
 import checkpoint
-import genrl
 import presets
+from baselines import genrl
 from conftest import kill_at_evaluation
 
 SMOKE = genrl.GenRLConfig(**presets.PRESETS["genrl"]["smoke"])
@@ -109,7 +109,7 @@ def test_cell_end_to_end_and_resumable(smoke_run, tmp_path):
 def test_command_line(smoke_run, tmp_path):
     run = str(tmp_path / "run")
     shutil.copytree(smoke_run, run)
-    command = [sys.executable, "genrl.py", "--preset", "smoke", "--seeds", "1", "--run", run]
+    command = [sys.executable, "baselines/genrl.py", "--preset", "smoke", "--seeds", "1", "--run", run]
     out = subprocess.run(command + ["--demo", "walker_stand"], cwd=ROOT, capture_output=True, text=True)
     assert out.returncode == 0, out.stderr[-2000:]
     assert "GenRL walker imitating walker_stand (side view, SE-SV): normalised score" in out.stdout and "over 1 seeds" in out.stdout
@@ -175,7 +175,7 @@ def test_bad_budgets_name_the_flag_and_the_fix():
 
 def test_settings_run_each_of_their_cells_once(smoke_run, tmp_path):
     run = _copy(smoke_run, tmp_path, "run")
-    command = [sys.executable, "genrl.py", "--preset", "smoke", "--seeds", "1", "--steps", "1", "--run", run, "--settings", "SE-SV"]
+    command = [sys.executable, "baselines/genrl.py", "--preset", "smoke", "--seeds", "1", "--steps", "1", "--run", run, "--settings", "SE-SV"]
     out = [subprocess.Popen(command + ["--shard", f"{i}/2"], cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True) for i in range(2)]
     for p in out:
         assert p.wait() == 0, p.stderr.read()[-2000:]

@@ -498,8 +498,8 @@ def test_a_missing_checkpoint_names_the_command_for_its_body_and_preset(tmp_path
 @pytest.mark.parametrize("script, argv, message", [
     # abbreviations (argparse's prefix matching) are refused by every entry point: today's --he(lp) printed the help
     *[(script, argv + ["--hel"], "unrecognized arguments: --hel") for script, argv in (
-        ("train.py", []), ("imitate.py", ["--demo", "walker_run"]), ("collect.py", []), ("experts.py", []), ("genrl.py", ["--demo", "walker_run"]),
-        ("aime_nob.py", ["--demo", "walker_run"]), ("evaluate.py", ["runs/x"]), ("tables.py", ["--table", "x"]), ("bench.py", []), ("video_encoder.py", []), ("envs.py", []))],
+        ("train.py", []), ("imitate.py", ["--demo", "walker_run"]), ("collect.py", []), ("experts.py", []), ("baselines/genrl.py", ["--demo", "walker_run"]),
+        ("baselines/aime_nob.py", ["--demo", "walker_run"]), ("evaluate.py", ["runs/x"]), ("tables.py", ["--table", "x"]), ("bench.py", []), ("video_encoder.py", []), ("envs.py", []))],
     ("imitate.py", ["--demo", "walker_run", "--finetune", "--seed", "3", "--threads", "0"], "unrecognized arguments: --seed 3"),
     ("train.py", ["--pres", "smoke", "--steps", "0"], "unrecognized arguments: --pres smoke"),
     # a flag that does nothing in the mode chosen
@@ -517,7 +517,7 @@ def test_flags_act_by_their_whole_name_and_only_where_they_act(script, argv, mes
     monkeypatch.setattr(sys, "argv", [script] + argv)
     with pytest.raises(SystemExit) as exit:
         runpy.run_path(os.path.join(ROOT, script), run_name="__main__")
-    assert exit.value.code == 2 and capsys.readouterr().err.splitlines()[-1].startswith(f"{script}: error: {message}")
+    assert exit.value.code == 2 and capsys.readouterr().err.splitlines()[-1].startswith(f"{os.path.basename(script)}: error: {message}")
 
 
 def test_a_cell_runs_in_one_process_at_a_time(smoke_run, tmp_path, monkeypatch):
@@ -752,7 +752,7 @@ def test_rows_of_other_weights_are_not_credited_to_the_agent(smoke_run, tmp_path
 
 
 def test_a_baseline_never_resumes_a_state_of_other_weights(smoke_run, tmp_path):
-    import genrl
+    from baselines import genrl
 
     cell = genrl.load_cell(copy_run(smoke_run, tmp_path), "walker_run", "side")
     cfg = genrl.GenRLConfig(**presets.PRESETS["genrl"]["smoke"])
@@ -795,10 +795,9 @@ def test_every_config_field_says_what_it_is_in_the_help():
     """--help shows each field's source comment (rundir.config_flags): every field of every config has one."""
     import dataclasses
 
-    import aime_nob
-    import genrl
     import online
     import ot_reward
+    from baselines import aime_nob, genrl
 
     classes = [cls for cls, _ in checkpoint.COMPONENTS.values()] + [goal_inference.ImitateConfig, genrl.GenRLConfig, aime_nob.AIMENoBConfig,
                                                                      online.OnlineConfig, ot_reward.OTConfig, collect.CollectConfig]

@@ -27,26 +27,29 @@ Interaction budget: env_steps agent steps per seed (env_steps / episode_steps ep
 steps, action repeat), written in every result row. Evaluation, rows, resuming and --eval-at (score against budget,
 here in env steps) as genrl.py (its plumbing).
 
-    python aime_nob.py --demo stickman_run --view side --run runs/<name> [--seeds 3] [--preset smoke|cpu]
+    python baselines/aime_nob.py --demo stickman_run --view side --run runs/<name> [--seeds 3] [--preset smoke|cpu]
 """
 import copy
 import dataclasses
+import os
+import sys
 from typing import ClassVar
 
 import numpy as np
 import torch
 from tqdm import tqdm
 
-import checkpoint
-import collect
-import envs
-import genrl
-import ot_reward
-import policy
-import rundir
-from presets import PRESETS
-from video_encoder import check_same_encoder, load_encoder
-from world_model import mlp
+sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))  # the project's modules, run as a script too
+import checkpoint  # noqa: E402
+import collect  # noqa: E402
+import envs  # noqa: E402
+import ot_reward  # noqa: E402
+import policy  # noqa: E402
+import rundir  # noqa: E402
+from baselines import genrl  # noqa: E402
+from presets import PRESETS  # noqa: E402
+from video_encoder import check_same_encoder, load_encoder  # noqa: E402
+from world_model import mlp  # noqa: E402
 
 METHOD = "AIME-NoB"
 

@@ -33,14 +33,15 @@ the training's random state as it was; tests/test_genrl.py), and counts as one. 
 state is saved (runs/<name>/baselines/), so a killed seed goes on from its last budget, and a longer --steps later goes
 on from the longest one instead of from update 0.
 
-    python genrl.py --demo stickman_run --view side --run runs/<name> [--seeds 3] [--preset smoke|cpu]
-    python genrl.py --settings SE-SV,SE-CV --run runs/<name> --steps 4000 --eval-at 1000,2000 [--shard 0/2]
+    python baselines/genrl.py --demo stickman_run --view side --run runs/<name> [--seeds 3] [--preset smoke|cpu]
+    python baselines/genrl.py --settings SE-SV,SE-CV --run runs/<name> --steps 4000 --eval-at 1000,2000 [--shard 0/2]
 """
 import argparse
 import dataclasses
 import hashlib
 import json
 import os
+import sys
 import time
 from typing import ClassVar
 
@@ -48,14 +49,15 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-import checkpoint
-import collect
-import envs
-import evaluate
-import policy
-import rundir
-from presets import PRESETS, config_flags
-from video_encoder import check_same_encoder
+sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))  # the project's modules, run as a script too
+import checkpoint  # noqa: E402
+import collect  # noqa: E402
+import envs  # noqa: E402
+import evaluate  # noqa: E402
+import policy  # noqa: E402
+import rundir  # noqa: E402
+from presets import PRESETS, config_flags  # noqa: E402
+from video_encoder import check_same_encoder  # noqa: E402
 
 METHOD = "GenRL"
 
