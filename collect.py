@@ -79,7 +79,7 @@ def episode_jobs(body, cfg, data):
     for t, task in enumerate(BODY_TASKS):
         snapshots = experts.history_steps(body, task)
         if not snapshots:
-            raise FileNotFoundError(f"no learning history for the {body} {task} expert in experts/history: train it with `python experts.py --body {body}`")
+            raise FileNotFoundError(f"no learning history for the {body} {task} expert in experts/history: train it with `python -m experts --body {body}`")
         snapshots = [s for s in snapshots if s >= cfg.history_from * snapshots[-1]]
         rng = np.random.default_rng([cfg.seed, 1 + t])
         for k in range(cfg.task_episodes):
@@ -97,7 +97,7 @@ def demo_jobs(cfg, data, demos=None):
     out = []
     for body, task in demos or [(b, t) for b in envs.BODIES for t in envs.TASKS]:
         if not os.path.exists(experts.expert_path(body, task)):
-            raise FileNotFoundError(f"no final {body} {task} expert at {experts.expert_path(body, task)}: train it with `python experts.py --body {body}`")
+            raise FileNotFoundError(f"no final {body} {task} expert at {experts.expert_path(body, task)}: train it with `python -m experts --body {body}`")
         for k in range(cfg.demo_episodes):
             paths = [os.path.join(data, "demos", f"{body}_{task}_{view}", f"{k:02d}.npz") for view in envs.VIEWS]
             job = dict(kind="demo", body=body, task=task, index=k, snapshot=None, steps=cfg.episode_steps, noise=0.0,

@@ -59,8 +59,8 @@ JUMP_RISE = 0.4  # m above the standing height for the full jump reward (our def
 
 # App. D, Table 3: (min, max) return used by Eq. 8. Jump has no public definition; ours differs from the
 # paper's, so its bounds are measured on our task, like Table 3's, over both bodies: min = the random policy's
-# mean return (`python experts.py --bounds`: walker 24.3, stickman 22.7), max = our final jump experts' mean
-# return (`python experts.py --eval --tasks jump`: walker 425.4, stickman 460.4).
+# mean return (`python -m experts --bounds`: walker 24.3, stickman 22.7), max = our final jump experts' mean
+# return (`python -m experts --eval --tasks jump`: walker 425.4, stickman 460.4).
 SCORE_BOUNDS = {"stand": (150.0, 970.0), "walk": (45.0, 960.0), "run": (30.0, 800.0), "jump": (23.5, 442.9)}
 
 # Side camera: dm_control's walker camera. Diagonal camera (new, paper Fig. 2): behind the body at 45

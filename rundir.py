@@ -1,4 +1,4 @@
-"""What every run checks and keeps safe (train.py, imitate.py, experts.py): its numeric flags, checked at start-up, and
+"""What every run checks and keeps safe (train.py, imitate.py, python -m experts): its numeric flags, checked at start-up, and
 its run directory (runs/<name>/): one writer at a time, and logs that a killed run leaves usable.
 
 check_flags   a one-line error naming the flag of a number out of its range (--steps 0, --holdout-every 1, --goal-lr 1e3)

@@ -112,7 +112,7 @@ def test_reader_names_corrupt_file(data, tmp_path):
 
 def test_missing_expert_names_the_command(tmp_path, monkeypatch):
     monkeypatch.setattr(experts, "EXPERT_DIR", str(tmp_path))
-    with pytest.raises(FileNotFoundError, match="python experts.py --body stickman"):
+    with pytest.raises(FileNotFoundError, match="python -m experts --body stickman"):
         collect.collect_body("stickman", SMOKE, str(tmp_path), workers=1)
     with pytest.raises(ValueError, match="valid body names are walker, stickman"):
         collect.collect_body("humanoid", SMOKE, str(tmp_path), workers=1)

@@ -1,11 +1,11 @@
-"""experts.py: stopping experts on resume keeps their latest policy; --warm-start copies one expert into another."""
+"""experts/: stopping experts on resume keeps their latest policy; --warm-start copies one expert into another."""
 import os
 
 import pytest
 import torch
 
 import experts
-import sac
+from experts import sac
 
 TINY = dict(steps=12, seed_steps=4, batch=8, hidden=8, snapshot_every=12, eval_every=10_000, checkpoint_minutes=0.0, final_episodes=1)
 
@@ -99,7 +99,7 @@ def test_data_and_expert_code_never_imports_method_files():
     import subprocess
     import sys
 
-    code = ("import sys, collect, envs, experts, sac, video_encoder, rundir; "
+    code = ("import sys, collect, envs, experts, experts.sac, video_encoder, rundir; "
             "print(sorted({'policy', 'distance', 'world_model', 'goal_vae', 'ot_reward', 'train', 'imitate'} & set(sys.modules)))")
     out = subprocess.run([sys.executable, "-c", code], cwd=os.path.dirname(os.path.dirname(os.path.abspath(__file__))), capture_output=True, text=True)
     assert out.returncode == 0 and out.stdout.strip() == "[]", out.stderr[-2000:]

@@ -495,10 +495,13 @@ def test_a_missing_checkpoint_names_the_command_for_its_body_and_preset(tmp_path
     assert not os.path.exists("runs/stickman_state_smoke_s0")
 
 
+PROG = {"experts": "python -m experts"}  # a package's command names itself (its argparse prog)
+
+
 @pytest.mark.parametrize("script, argv, message", [
     # abbreviations (argparse's prefix matching) are refused by every entry point: today's --he(lp) printed the help
     *[(script, argv + ["--hel"], "unrecognized arguments: --hel") for script, argv in (
-        ("train.py", []), ("imitate.py", ["--demo", "walker_run"]), ("collect.py", []), ("experts.py", []), ("baselines/genrl.py", ["--demo", "walker_run"]),
+        ("train.py", []), ("imitate.py", ["--demo", "walker_run"]), ("collect.py", []), ("experts", []), ("baselines/genrl.py", ["--demo", "walker_run"]),
         ("baselines/aime_nob.py", ["--demo", "walker_run"]), ("evaluate.py", ["runs/x"]), ("tables.py", ["--table", "x"]), ("bench.py", []), ("video_encoder.py", []), ("envs.py", []))],
     ("imitate.py", ["--demo", "walker_run", "--finetune", "--seed", "3", "--threads", "0"], "unrecognized arguments: --seed 3"),
     ("train.py", ["--pres", "smoke", "--steps", "0"], "unrecognized arguments: --pres smoke"),
@@ -511,13 +514,13 @@ def test_a_missing_checkpoint_names_the_command_for_its_body_and_preset(tmp_path
     ("imitate.py", ["--demo", "stickman_run", "--seeds", "3"], "--seeds sets GIIL-FT: add --finetune, or drop it"),
     ("train.py", ["--evaluate", "--resume"], "--resume is for training: it does nothing with --export or --evaluate"),
     ("collect.py", ["--features", "--data", "no_data", "--history-from", "0.5"], "--task-episodes and --history-from shape D_body: add --env BODY"),
-    ("experts.py", ["--history"], "--history works with --eval only"),
+    ("experts", ["--history"], "--history works with --eval only"),
 ])
 def test_flags_act_by_their_whole_name_and_only_where_they_act(script, argv, message, monkeypatch, capsys):
     monkeypatch.setattr(sys, "argv", [script] + argv)
     with pytest.raises(SystemExit) as exit:
         runpy.run_path(os.path.join(ROOT, script), run_name="__main__")
-    assert exit.value.code == 2 and capsys.readouterr().err.splitlines()[-1].startswith(f"{os.path.basename(script)}: error: {message}")
+    assert exit.value.code == 2 and capsys.readouterr().err.splitlines()[-1].startswith(f"{PROG.get(script, os.path.basename(script))}: error: {message}")
 
 
 def test_a_cell_runs_in_one_process_at_a_time(smoke_run, tmp_path, monkeypatch):

@@ -4,7 +4,7 @@ The paper trains its experts with Dreamer from pixels (GPU-days). Here each expe
 Actor-Critic (Haarnoja et al. 2018) on proprioceptive state with the true task reward: the expert
 only has to produce good behaviour, and state-based SAC reaches it in hours on a CPU.
 
-All tasks of one body train in lockstep in one process as an ensemble (sac.py): each task has its
+All tasks of one body train in lockstep in one process as an ensemble (experts/sac.py): each task has its
 own env, replay buffer, networks, temperature and optimiser state; nothing is shared but the matrix
 multiply.
 
@@ -17,6 +17,7 @@ experts/resume/<body>_<task>.pt: on a machine without --ckpt-dir's state, --resu
 from them with an empty replay, which it refills with the current policy (seed_steps transitions) before
 updating again. One file per task, so experts of one body may train in separate processes.
 The committed files are never overwritten by a run that was not given --replace-committed (committed_files).
+The expert stack is this folder, code and weights: `python -m experts --body walker` trains (experts/__main__.py).
 """
 import argparse
 import csv
@@ -32,9 +33,9 @@ from tqdm import tqdm
 
 import envs
 import rundir
-from sac import Actor, Critic, Replay, copy_member, sac_update, select_tasks
+from experts.sac import Actor, Critic, Replay, copy_member, sac_update, select_tasks
 
-EXPERT_DIR = os.path.join(os.path.dirname(os.path.abspath(__file__)), "experts")
+EXPERT_DIR = os.path.dirname(os.path.abspath(__file__))  # this folder: the expert stack's code and its committed weights
 
 
 @dataclass
@@ -105,7 +106,7 @@ def load_expert(body, task, step=None):
     envs._check_name("task", task, envs.TASKS)
     path = expert_path(body, task, step)
     if not os.path.exists(path):
-        raise FileNotFoundError(f"no expert weights at {path}: train them with `python experts.py --body {body} --tasks {task}`")
+        raise FileNotFoundError(f"no expert weights at {path}: train them with `python -m experts --body {body} --tasks {task}`")
     saved = rundir.load_checkpoint(path)
     if (saved.get("body"), saved.get("task")) != (body, task) or (step is not None and saved.get("step") != step):
         raise ValueError(f"{path} holds the expert of {saved.get('body')} {saved.get('task')} at step {saved.get('step')}, not {body} {task}"
@@ -322,7 +323,7 @@ def train(body, tasks, cfg, ckpt_dir, resume, warm_start=(), replace_committed=F
 
 
 def main():
-    parser = argparse.ArgumentParser(description="Train (or --eval) the per-task SAC experts of one body.", allow_abbrev=False)
+    parser = argparse.ArgumentParser(prog="python -m experts", description="Train (or --eval) the per-task SAC experts of one body.", allow_abbrev=False)
     parser.add_argument("--body", choices=envs.BODIES)
     parser.add_argument("--tasks", nargs="+", default=list(envs.TASKS), choices=envs.TASKS)
     parser.add_argument("--ckpt-dir", default="runs/experts", help="training state (not committed)")
@@ -381,7 +382,3 @@ def main():
     if args.body is None:
         parser.error("--body is required to train (or pass --eval)")
     train(args.body, args.tasks, cfg, args.ckpt_dir, args.resume, args.warm_start, args.replace_committed)
-
-
-if __name__ == "__main__":
-    rundir.run_main(main, "the last training state is in --ckpt-dir: the same command with --resume goes on from it")

@@ -1,4 +1,4 @@
-"""Soft Actor-Critic (Haarnoja et al. 2018) for several tasks at once: the algorithm of the experts (experts.py).
+"""Soft Actor-Critic (Haarnoja et al. 2018) for several tasks at once: the algorithm of the experts (experts/__init__.py).
 
 Every network is an *ensemble*: a stack of per-task weights applied with batched matrix products
 (torch.baddbmm), so n tasks cost little more than one in a small-MLP regime dominated by per-call
