@@ -1,7 +1,7 @@
 """Eq. 1's two levels share one phase-1 run: its configs and models, and its data.
 
-Below train.py (phase 1), goal_inference.py (phase 2) and the baselines (baselines/genrl.py, baselines/aime_nob.py), which import it and never
-each other:
+Below train.py (phase 1), goal_inference.py (phase 2) and the baselines (baselines/), which import it and never each
+other:
   TrainConfig, COMPONENTS  the configs of a run, one dataclass per component, and each one's flag prefix
   build_models, load_run   a run's models, fresh or from runs/<name>/checkpoint.pt (rundir.run_checkpoint checks it)
   stored_configs, check_weights  a checkpoint's configs and weights, checked before any model is built

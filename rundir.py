@@ -1,4 +1,4 @@
-"""What every run checks and keeps safe (train.py, imitate.py, python -m experts): its numeric flags, checked at start-up, and
+"""What every run checks and keeps safe (train.py, imitate.py, the experts): its numeric flags, checked at start-up, and
 its run directory (runs/<name>/): one writer at a time, and logs that a killed run leaves usable.
 
 check_flags   a one-line error naming the flag of a number out of its range (--steps 0, --holdout-every 1, --goal-lr 1e3)
@@ -12,7 +12,7 @@ read_jsonl    the rows of a .jsonl log; a last line cut short by a kill is dropp
 append_jsonl  one row, on a line of its own after such a cut line
 load_results, finished   phase 2's result rows (runs/<name>/results.jsonl) and which of them count for a cell
 fast_matmul   fp32 matmuls through oneDNN where that is faster and still fp32 (checked on this CPU)
-threads_flag  --threads of imitate.py, baselines/genrl.py and baselines/aime_nob.py: this process's torch threads, not the run's training ones
+threads_flag  --threads of imitate.py and the baselines: this process's torch threads, not the run's training ones
 atomic_write  every file the project writes, videos too: a temporary file per writer, renamed onto the path (never half a file)
 load_checkpoint, plain, generator   checkpoints that load with torch.load(weights_only=True), and only so
 weights_id    the identity of a checkpoint's agent, which every result row carries
