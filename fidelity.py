@@ -185,7 +185,6 @@ def plot(rows, path):
 
 
 @torch.no_grad()
-@torch.no_grad()
 def distance_ranking(wm, vae, dist_net, episodes, gaps=GAPS, every=10):
     """Eq. 6-7's promise on whole episodes (E of length L): d(s_t, goal of frame t + k) for t = 10, 20, ... and k in
     `gaps`, the goal as the filtered posterior state ('post') and as the goal encoder's q(s | p_{t+k}) ('enc'), and the
@@ -212,6 +211,7 @@ def distance_ranking(wm, vae, dist_net, episodes, gaps=GAPS, every=10):
     return out
 
 
+@torch.no_grad()
 def imagined_objective(models, cfgs, task, goals, demo_p, ot_cfg, starts=256, seed=0):
     """Eq. 5's J of each goal: the mean OT reward r^ot of the frozen policy's imagined rollouts (the quantity L_GI's
     lambda-returns estimate), from goal-encoder states of demo frames t0 matched against the frames after t0, as
