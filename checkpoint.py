@@ -156,15 +156,14 @@ def resolve_run(env, preset):
 
 
 def work_folder(run_dir):
-    """Where phase 2 and the benchmark write for run_dir (rows, videos, tables, baselines' states): the run's own folder,
-    but for a shipped agent (agents/<body>: committed weights only) runs/agent_<body> beside agents/, whose checkpoint.pt
-    links to the agent's (read, never written through: rundir.no_link); says so."""
-    folder = os.path.normpath(run_dir)
-    if os.path.basename(os.path.dirname(folder)) != rundir.AGENTS:
+    """Where phase 2 and the benchmark write for run_dir (rows, videos, tables, baselines' states; rundir.work_path): the
+    run's own folder, but for a shipped agent (agents/<body>: committed weights only) runs/agent_<body> beside agents/,
+    made here with a checkpoint.pt that links to the agent's (read, never written through: rundir.no_link); says so."""
+    work = rundir.work_path(run_dir)
+    if work == run_dir:
         return run_dir
-    work = os.path.join(os.path.dirname(os.path.dirname(folder)), "runs", f"agent_{os.path.basename(folder)}")
     os.makedirs(work, exist_ok=True)
-    link, weights = os.path.join(work, "checkpoint.pt"), os.path.abspath(os.path.join(folder, "checkpoint.pt"))
+    link, weights = os.path.join(work, "checkpoint.pt"), os.path.abspath(os.path.join(run_dir, "checkpoint.pt"))
     if os.path.exists(link) and not os.path.islink(link):
         raise ValueError(f"{link} is a checkpoint of its own: move that run elsewhere, so that the shipped agent's results can go to {work}")
     if os.path.realpath(link) != os.path.realpath(weights):  # none yet, or a link to an agents/ folder since moved

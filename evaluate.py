@@ -214,7 +214,8 @@ def write_goal_reaching(run_dir, scores, tc, weights):
 
 def read_goal_reaching(run_dir):
     """A run's goal_reaching.json, refused unless it scores the agent the run's checkpoint holds now."""
-    path, again = os.path.join(run_dir, "goal_reaching.json"), f"run `python train.py --evaluate --run-dir {run_dir}`"
+    path = os.path.join(rundir.work_path(run_dir), "goal_reaching.json")  # a shipped agent's in runs/agent_<body>
+    again = f"run `python train.py --evaluate --run-dir {run_dir}`"
     if not os.path.exists(path):
         raise FileNotFoundError(f"no {path}: {again} first")
     try:

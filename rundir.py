@@ -2,12 +2,11 @@
 its run directory (runs/<name>/): one writer at a time, and logs that a killed run leaves usable.
 
 check_flags   a one-line error naming the flag of a number out of its range (--steps 0, --holdout-every 1, --goal-lr 1e3)
-lock          runs/<name>/lock, created with O_EXCL and holding the writer's pid: a second trainer of the same run
-              stops with a one-line error; a lock whose process is gone (a killed run) is stale and taken over (claim)
+lock          runs/<name>/lock (O_EXCL, the writer's pid): a second trainer stops in one line; a dead one's is taken over
 run_checkpoint  a run's checkpoint, refused when it is not what the command expects (--env, agents/<body>, runs/<name>)
+work_path     where a run's results go (runs/agent_<body> for a shipped agent)
 run_main      an entry point's main(): bad input, Ctrl-C and SIGTERM each end in one line (the run's lock released)
-trim_jsonl    on resume, metrics.jsonl keeps only the rows up to the checkpoint's update (the killed run logged
-              further updates, which the resumed run logs again)
+trim_jsonl    on resume, metrics.jsonl keeps only the rows up to the checkpoint's update (a killed run logged past it)
 read_jsonl    the rows of a .jsonl log; a last line cut short by a kill is dropped, any other bad line is an error
 append_jsonl  one row, on a line of its own after such a cut line
 load_results, finished   phase 2's result rows (runs/<name>/results.jsonl) and which of them count for a cell
@@ -205,19 +204,15 @@ def parse_shard(text):
 def parse_settings(text):
     """--settings SE-SV,CE-CV -> the list; an unknown one names the valid ones."""
     settings = text.split(",")
-    unknown = [w for w in settings if w not in envs.SETTINGS]
-    if unknown:
+    if unknown := [w for w in settings if w not in envs.SETTINGS]:
         raise ValueError(f"unknown setting(s) {', '.join(unknown)}: choose from {', '.join(envs.SETTINGS)}")
     return settings
 
 
 def fast_matmul():
-    """Routes fp32 matmuls (linear layers, the GRU cell, their backward) through oneDNN instead of MKL's sgemm, where
-    that still computes in fp32; returns whether it did. On AMD EPYC cores MKL takes a slow path: the actor-critic update
-    ran faster through oneDNN, with MKL's error against float64 (`python bench.py --only components`, docs/results.md,
-    Speed). PyTorch's switch for this is the mkldnn fp32_precision 'bf16': on a CPU with
-    native bf16 matmul (AMX) oneDNN really rounds the inputs to bf16 (error ~1e-3), so a probe matmul and its backward
-    are checked against float64 here and the switch is undone when their error is above fp32's."""
+    """Routes fp32 matmuls through oneDNN instead of MKL's sgemm (faster on AMD EPYC cores: docs/results.md, Speed) where
+    that still computes in fp32; returns whether it did. PyTorch's switch, mkldnn's fp32_precision 'bf16', really rounds
+    to bf16 on a CPU with bf16 matmul (AMX): a probe matmul and its backward are checked against float64 first."""
     matmul = torch.backends.mkldnn.matmul
     if not torch.backends.mkldnn.is_available():
         return False
@@ -236,9 +231,8 @@ def fast_matmul():
 
 
 def threads_flag(parser):
-    """--threads: torch CPU threads of a phase-2 or baseline process, default 1. Not the phase-1 run's --threads: a run
-    trained alone with 2 put 2 threads in each of two table shards on two cores, and libgomp's spinning workers then
-    slowed GIIL-FT many times over (docs/results.md, Speed)."""
+    """--threads: torch CPU threads of a phase-2 or baseline process, default 1, not the run's: 2 threads in each of two
+    table shards on two cores slowed GIIL-FT many times over (docs/results.md, Speed)."""
     parser.add_argument("--threads", type=int, default=1, help="torch CPU threads (default 1; one per table shard)")
 
 
@@ -250,6 +244,12 @@ def use_threads(threads):
 
 
 AGENTS = "agents"  # the shipped phase-1 agents: agents/<body>/checkpoint.pt, weights only (checkpoint.export_agent)
+
+
+def work_path(run_dir):
+    """Where results of run_dir go: the folder itself, but runs/agent_<body> beside agents/ for a shipped agent."""
+    parent, name = os.path.split(os.path.normpath(run_dir))
+    return os.path.join(os.path.dirname(parent), "runs", f"agent_{name}") if os.path.basename(parent) == AGENTS else run_dir
 
 
 RUN_NAME = re.compile(r"(?P<env>[a-z]+)_(?P<obs>state|pixels)_(?P<preset>[a-z]+)_s(?P<seed>\d+)")  # checkpoint.default_run_dir's
@@ -367,9 +367,8 @@ def weights_id(ckpt):
 
 
 def load_checkpoint(path, device="cpu"):
-    """A checkpoint read with torch.load(weights_only=True): tensors and plain Python values only, so loading a file
-    runs no code from it. One-line ValueError for a corrupt file or one written in the older pickled format, which is
-    never unpickled here: a pickle runs whatever code it holds."""
+    """A checkpoint read with torch.load(weights_only=True): tensors and plain values only, no code runs (a pickle, the
+    older format, is never unpickled). One-line ValueError for a corrupt or pickled file."""
     try:
         return torch.load(path, map_location=device, weights_only=True)
     except pickle.UnpicklingError:

@@ -10,6 +10,7 @@ With GIIL-online rows, also the rank correlation of their first round's OT score
 with the goals' GIIL-ZS scores, which come from other start states: how well one real episode ranks the goals.
 
     python probes/goal_variance.py runs/walker_online/results.jsonl [more.jsonl ...]
+    python probes/goal_variance.py --benchmark runs/<run> [...]     the same of phase 1's goal-reaching benchmark
 """
 import argparse
 import os
@@ -44,6 +45,19 @@ def cell_rows(rows):
     return out
 
 
+def benchmark_rows(run_dirs, tasks=("stand", "walk", "run")):
+    """The same split of phase 1's goal-reaching benchmark (goal_reaching.json: each own demo's zero-shot goal, its
+    episodes from their own start states) -> {(run, 'benchmark', task): (g, e, r, mean, [])}."""
+    out = {}
+    for run in run_dirs:
+        record = evaluate.read_goal_reaching(run)
+        n = record["settings"]["eval_episodes"]
+        for task in tasks:
+            scores = record["scores"][task]["policy"]
+            out[(run, "benchmark", task)] = (*split([scores[i : i + n] for i in range(0, len(scores), n)]), float(np.mean(scores)), [])
+    return out
+
+
 def markdown(cells):
     lines = ["| agent | cell | GIIL-ZS mean | goal sd g | episode sd e | reliability of a 3-episode score | best of 10 known: + 1.54 g | "
              "one real episode's OT vs held-out score, Spearman |", "|---|---|---|---|---|---|---|---|"]
@@ -61,6 +75,10 @@ def markdown(cells):
 
 if __name__ == "__main__":
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0], allow_abbrev=False)
-    parser.add_argument("results", nargs="+", help="results.jsonl files (imitate.py) with GIIL-ZS rows")
-    paths = parser.parse_args().results
-    print(markdown(cell_rows([r for path in paths for r in rundir.read_jsonl(path)])))
+    parser.add_argument("results", nargs="+", help="results.jsonl files (imitate.py) with GIIL-ZS rows, or with --benchmark run folders")
+    parser.add_argument("--benchmark", action="store_true", help="the runs' goal-reaching benchmark (goal_reaching.json) instead")
+    args = parser.parse_args()
+    if args.benchmark:
+        print(markdown(benchmark_rows(args.results)))
+    else:
+        print(markdown(cell_rows([r for path in args.results for r in rundir.read_jsonl(path)])))

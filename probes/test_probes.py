@@ -189,6 +189,19 @@ def test_goal_variance_splits_goal_from_episode_noise():
     assert e == 0.0 and rel == 1.0 and abs(g - np.std(range(10), ddof=1)) < 1e-9
 
 
+def test_goal_variance_reads_the_benchmark_by_demo(smoke_run, tmp_path):
+    """--benchmark: goal_reaching.json's scores, eval_episodes per demo goal in a row, split as the GIIL-ZS rows are."""
+    goal_variance = probe_script("goal_variance")
+    run = _copy(smoke_run, tmp_path, "run")
+    record = json.load(open(os.path.join(run, "goal_reaching.json")))
+    record["settings"]["eval_episodes"] = 2
+    record["scores"]["walk"]["policy"] = [10.0, 30.0, 50.0, 70.0]  # two demos' goals, 2 episodes each
+    with open(os.path.join(run, "goal_reaching.json"), "w") as f:
+        json.dump(record, f)
+    g, e, rel, mean, _ = goal_variance.benchmark_rows([run])[(run, "benchmark", "walk")]
+    assert mean == 40.0 and (g, e, rel) == goal_variance.split([[10.0, 30.0], [50.0, 70.0]])
+
+
 def test_goal_probe_scores_every_goal_by_every_objective(smoke_run):
     """On the smoke agent: each objective gives one finite score per goal; `real` is online.ot_score of the same
     episodes per step, and the replayed features start at the filtered ones (the same s_0)."""

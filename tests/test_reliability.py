@@ -678,6 +678,7 @@ def test_the_shipped_agents_results_go_to_runs_not_into_its_folder(smoke_run, tm
     assert rows and all(r["weights"] == rundir.weights_id(rundir.run_checkpoint("agents/walker")) for r in rows)
     assert os.listdir("agents/walker") == ["checkpoint.pt"] and sorted(os.listdir(work)) == ["checkpoint.pt", "imitate", "results.jsonl"]
     assert checkpoint.work_folder("agents/walker") == work and checkpoint.work_folder(smoke_run) == smoke_run  # again; a run of one's own
+    assert rundir.work_path("agents/walker/") == work  # where evaluate.py reads the agent's goal_reaching.json
     os.remove(os.path.join(work, "checkpoint.pt"))
     shutil.copy("agents/walker/checkpoint.pt", os.path.join(work, "checkpoint.pt"))
     with pytest.raises(ValueError, match=r"runs/agent_walker/checkpoint.pt is a checkpoint of its own: move that run elsewhere"):
