@@ -206,6 +206,7 @@ def test_parallel_shards_collect_demos_one_at_a_time(tmp_path, monkeypatch):
 
     monkeypatch.setattr(collect, "collect_demos", slow_collect)
     cfgs = {"train": checkpoint.TrainConfig(data=str(tmp_path))}
+    os.makedirs(tmp_path / "demos")  # a data folder of ours (checkpoint.demo_folder follows no other)
     shards = [threading.Thread(target=checkpoint.demo_folder, args=(cfgs, "walker_run", "side")) for _ in range(2)]
     for shard in shards:
         shard.start()
