@@ -705,13 +705,14 @@ def test_a_full_disk_or_a_path_that_cannot_be_written_ends_in_one_line_naming_it
     assert out.returncode == 1 and out.stderr.strip().startswith(f"error: File exists: {tmp_path / 'a_file'}"), out.stderr[-500:]
 
 
-def test_rows_and_records_that_are_not_what_they_should_be_are_named(smoke_run, tmp_path):
+def test_rows_and_records_that_are_not_what_they_should_be_are_named(smoke_run, smoke_data, tmp_path):
     for text in ("[1, 2]\n", '{"demo": "walker_run"}\n'):
         (tmp_path / "rows.jsonl").write_text(text)
         with pytest.raises(ValueError, match=r"rows.jsonl: row 1 is not a result row \(a dict with agent, demo, view, method, seed, score\)"):
             tables.merge_files([str(tmp_path / "rows.jsonl")])
     run = copy_run(smoke_run, tmp_path)
-    out = subprocess.run([sys.executable, "train.py", "--evaluate", "--run-dir", run, "--eval-steps", "5", "--eval-episodes", "1"], cwd=ROOT, capture_output=True, text=True)
+    out = subprocess.run([sys.executable, "train.py", "--evaluate", "--run-dir", run, "--data", smoke_data, "--eval-steps", "5", "--eval-episodes", "1"],
+                         cwd=ROOT, capture_output=True, text=True)
     assert out.returncode == 0, out.stderr[-2000:]
     path = os.path.join(run, "goal_reaching.json")
     with open(path, "r+") as f:
