@@ -1,47 +1,11 @@
-import argparse
-import dataclasses
 import importlib.util
 import os
 import sys
 
-import pytest
-
 os.environ.setdefault("MUJOCO_GL", "egl")
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 
-import checkpoint  # noqa: E402
-import collect  # noqa: E402
-from baselines import genrl  # noqa: E402
-import presets  # noqa: E402
-import train  # noqa: E402
-
-
-@pytest.fixture(scope="session")
-def smoke_data(tmp_path_factory):
-    """D_body of the walker and D_demo, smoke preset (a few 20-step episodes), in a temporary data folder."""
-    root = str(tmp_path_factory.mktemp("data"))
-    cfg = collect.CollectConfig(**presets.PRESETS["collect"]["smoke"])
-    collect.collect_body("walker", cfg, root, workers=2)
-    collect.collect_demos(cfg, root, workers=2)
-    return root
-
-
-@pytest.fixture(scope="session")
-def smoke_run(smoke_data, tmp_path_factory):
-    """A phase-1 run of the walker with the smoke preset; returns its folder."""
-    cfgs = train.resolve_configs(train_args(data=smoke_data), "smoke")
-    run_dir = str(tmp_path_factory.mktemp("runs") / "walker_smoke")
-    train.train(cfgs, run_dir, resume=False)
-    return run_dir
-
-
-def train_args(**given):
-    """An argparse-like namespace for train.resolve_configs: 'component.field' -> value (None = not given)."""
-    ns = argparse.Namespace()
-    for name, (cls, _) in checkpoint.COMPONENTS.items():
-        for field in dataclasses.fields(cls):
-            setattr(ns, f"{name}.{field.name}", given.get(field.name) if name == "train" else given.get(f"{name}.{field.name}"))
-    return ns
+pytest_plugins = ("tests.fixtures",)  # smoke_data, smoke_run: shared by tests/ and probes/; this file imports no entry point
 
 
 def probe_script(name):
@@ -51,18 +15,3 @@ def probe_script(name):
     module = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(module)
     return module
-
-
-def kill_at_evaluation(monkeypatch, n):
-    """A baseline's n-th seed evaluation (genrl.evaluate_actor) raises KeyboardInterrupt, as a kill there would;
-    returns the real function (to put back with monkeypatch.setattr)."""
-    evaluate_actor, calls = genrl.evaluate_actor, []
-
-    def killed(*args):
-        calls.append(1)
-        if len(calls) == n:
-            raise KeyboardInterrupt
-        return evaluate_actor(*args)
-
-    monkeypatch.setattr(genrl, "evaluate_actor", killed)
-    return evaluate_actor

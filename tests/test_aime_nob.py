@@ -16,7 +16,7 @@ import checkpoint
 import ot_reward
 import presets
 from baselines import aime_nob, genrl
-from conftest import kill_at_evaluation
+from tests.fixtures import kill_at_evaluation
 
 SMOKE = aime_nob.AIMENoBConfig(**presets.PRESETS["aime_nob"]["smoke"])
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))

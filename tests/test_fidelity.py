@@ -8,7 +8,7 @@ import fidelity
 import goal_vae
 import presets
 import world_model as W
-from conftest import train_args
+from tests.fixtures import train_args
 
 torch.set_num_threads(1)
 

@@ -13,7 +13,7 @@ import torch
 import checkpoint
 import presets
 from baselines import genrl
-from conftest import kill_at_evaluation
+from tests.fixtures import kill_at_evaluation
 
 SMOKE = genrl.GenRLConfig(**presets.PRESETS["genrl"]["smoke"])
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))

@@ -25,7 +25,7 @@ import presets
 import rundir
 import tables
 import train
-from conftest import train_args
+from tests.fixtures import train_args
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 TINY = dict(steps=12, seed_steps=4, batch=8, hidden=8, snapshot_every=6, eval_every=10_000, checkpoint_minutes=0.0, final_episodes=1)

@@ -15,7 +15,7 @@ import goal_vae
 import presets
 import rundir
 import train
-from conftest import train_args
+from tests.fixtures import train_args
 
 
 def test_smoke_run_writes_checkpoint_metrics_and_goal_reaching(smoke_run):

@@ -7,7 +7,9 @@ import torch.nn.functional as F
 from torch.distributions import Categorical, Independent, Normal, OneHotCategorical, kl_divergence
 
 import presets
+import train
 import world_model as W
+from tests.fixtures import train_args
 
 torch.set_num_threads(1)
 
@@ -213,9 +215,6 @@ def test_overshooting_kl_rolls_the_prior_open_loop_from_posterior_states():
 
 
 def test_overshooting_past_a_segment_is_refused_before_anything_runs(tmp_path):
-    import train
-    from conftest import train_args
-
     cfgs = train.resolve_configs(train_args(data=str(tmp_path / "none"), **{"wm.overshoot": 8}), "smoke")
     with pytest.raises(ValueError, match="--wm-overshoot 8 rolls past a segment: pass one below --wm-seq-len 8"):
         train.train(cfgs, str(tmp_path / "run"), resume=False)

@@ -1,0 +1,55 @@
+"""The tests' shared fixtures and helpers (the smoke data and phase-1 run, config namespaces, a killed baseline seed),
+loaded for tests/ and probes/ alike by the root conftest.py (pytest_plugins)."""
+import argparse
+import dataclasses
+
+import pytest
+
+import checkpoint
+import collect
+import presets
+import train
+from baselines import genrl
+
+
+@pytest.fixture(scope="session")
+def smoke_data(tmp_path_factory):
+    """D_body of the walker and D_demo, smoke preset (a few 20-step episodes), in a temporary data folder."""
+    root = str(tmp_path_factory.mktemp("data"))
+    cfg = collect.CollectConfig(**presets.PRESETS["collect"]["smoke"])
+    collect.collect_body("walker", cfg, root, workers=2)
+    collect.collect_demos(cfg, root, workers=2)
+    return root
+
+
+@pytest.fixture(scope="session")
+def smoke_run(smoke_data, tmp_path_factory):
+    """A phase-1 run of the walker with the smoke preset; returns its folder."""
+    cfgs = train.resolve_configs(train_args(data=smoke_data), "smoke")
+    run_dir = str(tmp_path_factory.mktemp("runs") / "walker_smoke")
+    train.train(cfgs, run_dir, resume=False)
+    return run_dir
+
+
+def train_args(**given):
+    """An argparse-like namespace for train.resolve_configs: 'component.field' -> value (None = not given)."""
+    ns = argparse.Namespace()
+    for name, (cls, _) in checkpoint.COMPONENTS.items():
+        for field in dataclasses.fields(cls):
+            setattr(ns, f"{name}.{field.name}", given.get(field.name) if name == "train" else given.get(f"{name}.{field.name}"))
+    return ns
+
+
+def kill_at_evaluation(monkeypatch, n):
+    """A baseline's n-th seed evaluation (genrl.evaluate_actor) raises KeyboardInterrupt, as a kill there would;
+    returns the real function (to put back with monkeypatch.setattr)."""
+    evaluate_actor, calls = genrl.evaluate_actor, []
+
+    def killed(*args):
+        calls.append(1)
+        if len(calls) == n:
+            raise KeyboardInterrupt
+        return evaluate_actor(*args)
+
+    monkeypatch.setattr(genrl, "evaluate_actor", killed)
+    return evaluate_actor
