@@ -259,3 +259,31 @@ def test_distance_probe_readings_on_a_body_at_rest_and_one_that_moves():
         moving = [fitted["hilbert"](x[:, 35], x[:, 35 + k]).mean().item() for k in (0, 5, 15)]
     assert rest["expectile"] < rest["eq7"] - 0.05, rest
     assert moving[0] == 0.0 and moving[0] < moving[1] < moving[2], moving
+
+
+def test_eq4_probe_critic_on_real_sequences_regresses_to_the_lambda_returns():
+    """probes/eq4_probe.py's repval: with d = 1 everywhere and a slow critic of 0, a 3-step real segment's returns are
+    G_1 = -1, G_0 = -1 - gamma lambda (G_2 = v_2 = 0), and a critic of 0 has the loss 0.5 mean(G^2)."""
+    probe = probe_script("eq4_probe")
+    cfg = type("Config", (), {"gamma": 0.9, "lambda_": 0.5})
+    zero = lambda feat, goal: torch.zeros(feat.shape[:-1])
+    dist_net = lambda feat, goal: torch.ones(feat.shape[:-1])
+    loss = probe.real_critic_loss(zero, zero, dist_net, torch.randn(2, 3, 4), torch.randn(2, 4), cfg)
+    assert loss.item() == pytest.approx(0.5 * ((-1 - 0.45) ** 2 + 1) / 2)
+
+
+def test_eq4_probe_trains_a_fresh_actor_and_leaves_the_world_model_frozen(smoke_run, tmp_path):
+    """On the smoke run: a row with the guard's settings, its log and the benchmark; the run's checkpoint untouched."""
+    before = open(os.path.join(smoke_run, "checkpoint.pt"), "rb").read()
+    out = str(tmp_path / "rows.jsonl")
+    result = subprocess.run([sys.executable, "probes/eq4_probe.py", smoke_run, "--updates", "2", "--log-every", "1", "--horizon", "3",
+                             "--starts", "16", "--critic-real", "--episodes", "1", "--eval-steps", "10", "--out", out],
+                            cwd=ROOT, capture_output=True, text=True, env={**os.environ, "MUJOCO_GL": "egl"})
+    assert result.returncode == 0, result.stderr[-2000:]
+    row = json.loads(open(out).read())
+    assert (row["horizon"], row["starts"], row["critic_real"], row["updates"]) == (3, 16, True, 2)
+    assert [r["step"] for r in row["log"]] == [1, 2] and len(row["log"][0]["reward_reachable"]) == 3
+    assert set(row["scores"]) == {"stand", "walk", "run"} and np.isfinite(row["gap"])
+    assert open(os.path.join(smoke_run, "checkpoint.pt"), "rb").read() == before
+    summary = subprocess.run([sys.executable, "probes/eq4_probe.py", "--summary", out], cwd=ROOT, capture_output=True, text=True)
+    assert f"| {smoke_run} | 3 | 16 | yes | 2 | 1 | {row['average']:.1f} +- nan |" in summary.stdout

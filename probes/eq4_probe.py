@@ -1,0 +1,142 @@
+"""Does Eq. 4 alone train a policy that reaches goals, on a trained run's frozen world model, and which guard helps?
+
+A fresh actor and critic learn by Eq. 4 alone (policy.policy_losses, reward -d(s, g), no cloning) on the frozen world
+model, goal VAE and distance network of a trained run, as GenRL's actors learn on its frozen world model; starts and
+goals drawn as train.py draws them (policy.sample_starts, sample_goals on D_body batches). Guards, one factor each
+against this control (`--horizon 15 --starts 256`, the cpu preset's):
+* `--horizon 5 --starts 1024`: short rollouts from many real starts (offline DreamerV2's horizon 5, V-D4RL, Lu et al.
+  2023; GenRL's starts: every posterior state of a batch): the imagination leaves the data for fewer steps;
+* `--critic-real`: the critic also regressed on lambda-returns along the batch's real posterior sequences, each
+  towards a goal sampled as the imagined ones are (DreamerV3's "repval", Hafner et al. 2023): its values are tied to
+  states the data holds;
+* another run: the frozen world model of another recipe (e.g. runs/walker_wm_os25_s0, latent overshooting).
+Every `--log-every` updates it prints Eq. 4's imagined reward towards goals the data reached (evaluate.
+reachable_goal_reward: the actor's, with another segment's goal, random actions); at the end the goal-reaching
+benchmark (evaluate.goal_reaching) and the imagined minus real -d on the benchmark's episodes (probes/imagination_gap.py),
+and appends one row to --out. Run from the repository root:
+
+    python probes/eq4_probe.py agents/walker [--updates 3000] [--horizon 5 --starts 1024] [--critic-real] [--seed 0]
+    python probes/eq4_probe.py --summary docs/results/eq4_probe_walker.jsonl
+"""
+import argparse
+import dataclasses
+import json
+import os
+import sys
+import time
+
+import numpy as np
+import torch
+
+sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+import checkpoint  # noqa: E402
+import envs  # noqa: E402
+import evaluate  # noqa: E402
+import policy  # noqa: E402
+import rundir  # noqa: E402
+from probes import imagination_gap  # noqa: E402
+
+
+def real_critic_loss(critic, slow_critic, dist_net, post_feat, goal, cfg):
+    """DreamerV3's repval on D_body: V(s_t, g) along a real segment regressed to TD(lambda) returns of -d(s_{t+1}, g) and
+    the slow critic's values. post_feat (B, T, F), goal (B, F) -> loss. Segments that cross an episode start are the
+    data's; their returns mix two episodes (as a replay buffer's do)."""
+    with torch.no_grad():
+        reward = policy.goal_reward(dist_net, post_feat, goal)  # (B, T - 1)
+        returns = policy.lambda_return(reward, slow_critic(post_feat, goal), cfg.gamma, cfg.lambda_)
+    return policy.critic_loss(critic, post_feat, goal, returns)[0]
+
+
+def train_eq4(models, cfgs, data, updates, critic_real, log_every, seed):
+    """A fresh actor and critic (seeded from `seed`) trained `updates` steps by Eq. 4 alone; the world model, goal VAE
+    and distance frozen. Returns the log rows."""
+    wc, ac = cfgs["wm"], cfgs["ac"]
+    wm, vae, dist_net = models["world_model"], models["goal_vae"], models["dist_net"]
+    torch.manual_seed(seed)
+    rng = np.random.default_rng(seed)
+    actor = models["actor"] = policy.Actor(ac, wm.feat_dim, wm.feat_dim, wm.action_dim)
+    critic, slow_critic = models["critic"], models["slow_critic"] = policy.make_critics(ac, wm.feat_dim, wm.feat_dim)
+    return_norm = models["return_norm"] = policy.ReturnNorm(ac.return_norm_decay)
+    opt_actor, opt_critic = torch.optim.Adam(actor.parameters(), lr=ac.actor_lr), torch.optim.Adam(critic.parameters(), lr=ac.critic_lr)
+    stop = lambda: "a smaller --ac-actor-lr or --ac-critic-lr in the run"
+    log, t0 = [], time.time()
+    for step in range(updates):
+        batch = data.sample(wc.batch, rng, "cpu")
+        with torch.no_grad():
+            post, _ = wm.observe(batch[wc.obs], batch["action"], batch["is_first"])
+            post_feat, goal_feat = wm.feat(post), vae.goal(batch["p"])
+        start, index = policy.sample_starts(post, ac.starts)
+        goals = policy.sample_goals(post_feat, goal_feat, index, batch["is_first"], ac.goal_mix, ac.goal_near)
+        a_loss, c_loss, m = policy.policy_losses(wm, dist_net, actor, critic, slow_critic, return_norm, start, goals, ac)
+        if critic_real:  # one goal per segment, drawn for its first state as the imagined ones are
+            first = torch.arange(wc.batch) * wc.seq_len
+            real_goals = policy.sample_goals(post_feat, goal_feat, first, batch["is_first"], ac.goal_mix, ac.goal_near)
+            c_loss = c_loss + real_critic_loss(critic, slow_critic, dist_net, post_feat, real_goals, ac)
+        policy.checked_step(opt_actor, a_loss, "Eq. 4 actor loss", step, stop, ac.grad_clip)
+        policy.checked_step(opt_critic, c_loss, "Eq. 4 critic loss", step, stop, ac.grad_clip)
+        policy.ema_update(slow_critic, critic, ac.slow_critic_rate)
+        if (step + 1) % log_every == 0:
+            reach = evaluate.reachable_goal_reward(wm, dist_net, actor, post, goal_feat, batch["is_first"], ac.horizon, seed=step)
+            log.append({"step": step + 1, "reward": m["reward"], "value": m["value"], **reach})
+            print(f"{step + 1}: reward {m['reward']:.3f} value {m['value']:.2f} | reachable goals -d own / other goal / random: "
+                  + " ".join(f"{r:.3f}" for r in reach["reward_reachable"]) + f" | {log_every / (time.time() - t0):.1f} upd/s", flush=True)
+            t0 = time.time()
+    return log
+
+
+def summary(rows):
+    """One line per (run, guard): the benchmark average over seeds, mean +- s.e., the gap and the reachable rewards."""
+    groups = {}
+    for row in rows:
+        groups.setdefault((row["run"], row["horizon"], row["starts"], row["critic_real"], row["updates"]), []).append(row)
+    out = ["| run | horizon | starts | critic on real | updates | seeds | goal reaching | imagined minus real -d | -d own / other / random |",
+           "|---|---|---|---|---|---|---|---|---|"]
+    for (run, horizon, starts, real, updates), group in groups.items():
+        score, gap = [r["average"] for r in group], [r["gap"] for r in group]
+        reach = np.mean([r["log"][-1]["reward_reachable"] for r in group], 0)
+        se = lambda x: evaluate.stderr(x) if len(x) > 1 else float("nan")
+        out.append(f"| {run} | {horizon} | {starts} | {'yes' if real else 'no'} | {updates} | {len(group)} | {np.mean(score):.1f} +- {se(score):.1f} | "
+                   f"{np.mean(gap):.3f} +- {se(gap):.3f} | " + " / ".join(f"{r:.3f}" for r in reach) + " |")
+    return out
+
+
+def main():
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("run", nargs="?", help="a trained run whose world model, goal VAE and distance stay frozen, e.g. agents/walker")
+    parser.add_argument("--summary", metavar="JSONL", help="instead: the rows of this probe, grouped by run and guard")
+    parser.add_argument("--updates", type=int, default=3000)
+    parser.add_argument("--horizon", type=int, default=None, help="imagined steps H (default: the run's)")
+    parser.add_argument("--starts", type=int, default=None, help="imagination starts per update (default: the run's)")
+    parser.add_argument("--critic-real", action="store_true", help="the critic also fit on real D_body sequences (repval)")
+    parser.add_argument("--seed", type=int, default=0, help="of the fresh actor, critic and batches")
+    parser.add_argument("--episodes", type=int, default=3, help="benchmark episodes per demo goal (the benchmark's own: 3)")
+    parser.add_argument("--eval-steps", type=int, default=envs.EPISODE_STEPS, help="steps of each benchmark episode")
+    parser.add_argument("--log-every", type=int, default=250)
+    parser.add_argument("--out", help="append the row here (default docs/results/eq4_probe_<body>.jsonl)")
+    args = parser.parse_args()
+    if args.summary:
+        print("\n".join(summary([json.loads(line) for line in open(args.summary)])))
+        return
+    if not args.run:
+        parser.error("name a trained run, or --summary JSONL")
+    torch.set_num_threads(1)
+    cfgs, models, ckpt = checkpoint.load_run(args.run)
+    ac = cfgs["ac"] = dataclasses.replace(cfgs["ac"], horizon=args.horizon or cfgs["ac"].horizon, starts=args.starts or cfgs["ac"].starts)
+    _, data, _, _ = checkpoint.prepare_data(cfgs)
+    log = train_eq4(models, cfgs, data, args.updates, args.critic_real, args.log_every, args.seed)
+    scores = evaluate.goal_reaching(models, cfgs, args.episodes, args.eval_steps, envs.BODY_TASKS)
+    print("\n".join(evaluate.summary(scores)))
+    gaps = [np.subtract(*imagination_gap.task_gap(models, cfgs, task)) for task in envs.BODY_TASKS]
+    gap = float(np.concatenate(gaps).mean())
+    print(f"imagined minus real -d on the benchmark's episodes: {gap:.3f}")
+    row = {"run": args.run, "weights_id": rundir.weights_id(ckpt), "horizon": ac.horizon, "starts": ac.starts, "critic_real": args.critic_real,
+           "updates": args.updates, "seed": args.seed, "episodes": args.episodes, "gap": gap, "log": log,
+           "scores": {t: float(np.mean(s["policy"])) for t, s in scores.items()},
+           "average": float(np.mean([np.mean(s["policy"]) for s in scores.values()]))}
+    out = args.out or os.path.join("docs", "results", f"eq4_probe_{cfgs['train'].env}.jsonl")
+    rundir.append_jsonl(out, row)
+    print("appended to", out)
+
+
+if __name__ == "__main__":
+    main()
