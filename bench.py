@@ -67,7 +67,7 @@ def component_updates(preset="cpu", obs_dim=24, action_dim=6, p_dim=512, device=
     import world_model as W
     from presets import PRESETS
 
-    cfg = {name: checkpoint.COMPONENTS[name][0](**PRESETS[name][preset]) for name in ("wm", "goal", "dist", "ac")}
+    cfg = {name: checkpoint.COMPONENTS[name][0](**PRESETS[name][preset]) for name in ("wm", "goal", "dist", "ac", "cloning")}
     obs_shape = obs_dim if cfg["wm"].obs == "state" else (64, 64, 3)
     wm = W.WorldModel(cfg["wm"], obs_shape, action_dim)
     vae = goal_vae.GoalVAE(cfg["goal"], p_dim, cfg["wm"].deter, wm.latent)
@@ -100,14 +100,14 @@ def component_updates(preset="cpu", obs_dim=24, action_dim=6, p_dim=512, device=
         policy.ema_update(slow_critic, critic, cfg["ac"].slow_critic_rate)
 
     pairs = lambda: distance.sample_pairs(batch["episode"], batch["is_first"], cfg["dist"].pairs)
-    clone = lambda: step("ac", cloning.bc_loss(actor, post_feat, goal_feat, batch["action"], goal_feat[:, -1], cfg["ac"].bc_final)[0])
+    clone = lambda: step("ac", cloning.bc_loss(actor, post_feat, goal_feat, batch["action"], goal_feat[:, -1], cfg["cloning"].bc_final)[0])
     return {
         "Eq. 2 world model": lambda: step("wm", wm.loss(batch)[0]),
         "Eq. 3 goal VAE": lambda: step("goal", vae.loss(batch["p"], post)[0]),
         "Eq. 7 distance": lambda: step("dist", distance.distance_loss(dist_net, post_feat, pairs(), cfg["wm"].seq_len, cfg["dist"].contrastive_weight,
                                                                        goal_feat if cfg["dist"].encoder_goals else None)[0]),
         f"Eq. 4 actor-critic ({cfg['ac'].starts} starts x {cfg['ac'].horizon} steps)": actor_critic,
-        f"ours cloning step (x {cfg['ac'].bc_steps} per update)": clone,
+        f"ours cloning step (x {cfg['cloning'].bc_steps} per update)": clone,
     }
 
 
@@ -145,7 +145,7 @@ def bench_components():
         print(line + f" | {flops[name] / 1e9:.2f} GFLOP at {flops[name] / np.mean(times[name, used]) / 1e9:.0f} GFLOP/s")
     if not fast:
         print("phase 1        (oneDNN fp32 matmuls not used: on this CPU they would not compute in fp32, rundir.fast_matmul)")
-    bc_steps = checkpoint.COMPONENTS["ac"][0]().bc_steps
+    bc_steps = checkpoint.COMPONENTS["cloning"][0]().bc_steps
     count = {name: bc_steps if name.startswith("ours cloning") else 1 for name in updates}  # the first cloning step rides on Eq. 4's
     total_flops = sum(count[n] * flops[n] for n in updates)
     total_s = sum(count[n] * np.mean(times[n, used]) for n in updates)

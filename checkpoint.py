@@ -19,7 +19,7 @@ from typing import ClassVar
 
 import torch
 
-
+import cloning
 import collect
 import distance
 import envs
@@ -62,11 +62,13 @@ COMPONENTS = {
     "goal": (goal_vae.GoalVAEConfig, "goal-"),
     "dist": (distance.DistanceConfig, "dist-"),
     "ac": (policy.ActorCriticConfig, "ac-"),
+    "cloning": (cloning.CloningConfig, "ac-"),  # a term of the actor's loss: --ac-bc, --ac-bc-final, ...
 }
 # Switches measured worse and deleted, at the value that turned each off (docs/ablations.md names each one's result and
 # the commit that had it): a stored config that holds one at that value loads as before, one trained with it on is refused
 REMOVED = {"train": dict(act_temperature=0.0, cover_edges=0),
-           "ac": dict(reward="distance", mixture=1, actor_input="feat", bc_awr=0.0, uncertainty=0.0, bc_polish_ema=0.0, bc_polish_fresh=0)}
+           "ac": dict(reward="distance", mixture=1, actor_input="feat", uncertainty=0.0),
+           "cloning": dict(bc_awr=0.0, bc_polish_ema=0.0, bc_polish_fresh=0)}
 
 
 def build_models(cfgs, obs_shape, action_dim, p_dim, device):
@@ -89,10 +91,15 @@ def stored_configs(ckpt, path):
     """A checkpoint's configs {component: dataclass}. A field it lacks came after it was written and reads as today's
     default; a field since deleted (REMOVED) is dropped at its off value, and a one-line error otherwise."""
     damaged = f"{path} is damaged or not this project's checkpoint"
-    if not isinstance(ckpt.get("config"), dict) or set(ckpt["config"]) != set(COMPONENTS):
-        raise ValueError(f"{damaged}: its config names {sorted(ckpt.get('config') or [])}, not {sorted(COMPONENTS)}")
+    config = ckpt.get("config")
+    if isinstance(config, dict) and "cloning" not in config and isinstance(config.get("ac"), dict):
+        # written before the cloning had a config of its own (the shipped agents): its fields were the actor-critic's
+        config = {**config, "ac": {k: v for k, v in config["ac"].items() if not k.startswith("bc")},
+                  "cloning": {k: v for k, v in config["ac"].items() if k.startswith("bc")}}
+    if not isinstance(config, dict) or set(config) != set(COMPONENTS):
+        raise ValueError(f"{damaged}: its config names {sorted(config or [])}, not {sorted(COMPONENTS)}")
     cfgs = {}
-    for name, fields in ckpt["config"].items():
+    for name, fields in config.items():
         cls, prefix = COMPONENTS[name]
         known = {f.name: f.default for f in dataclasses.fields(cls)}
         for field, value in fields.items():

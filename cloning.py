@@ -5,14 +5,28 @@ docs/ablations.md, Phase 1), so the actor's loss also clones D_body's own action
   bc_loss  -log pi(a_t | s_t, g), g the goal encoder's state of a later frame of the same segment or of the
            episode's last frame
   polish   cloning steps on the frozen final world model after training (--ac-bc-polish)
-train.py adds ac.bc * bc_loss to Eq. 4's actor loss (policy.policy_losses) and takes ac.bc_steps - 1 more cloning
-steps per update.
+train.py adds bc * bc_loss to Eq. 4's actor loss (policy.policy_losses) and takes bc_steps - 1 more cloning steps per
+update (CloningConfig; its flags are --ac-bc...: a term of the actor's loss).
 """
+from dataclasses import dataclass
+from typing import ClassVar
+
 import numpy as np
 import torch
 from tqdm import tqdm
 
 import policy
+
+
+@dataclass
+class CloningConfig:
+    # rundir.check_flags: the values a field may take where not a count (>= 1) or a float >= 0
+    ranges: ClassVar[dict] = {"bc_final": (0, 1), "bc_polish": (0, None)}
+    bc: float = 1.0  # weight of hindsight behaviour cloning beside Eq. 4's actor loss (ours, a deviation, bc_loss; 0 = Eq. 4 alone)
+    bc_final: float = 0.5  # share of bc_loss's goals from the episode's last frame, what the benchmark and GIIL-ZS give (ours)
+    bc_steps: int = 10  # actor steps on bc_loss per update: the first with Eq. 4's loss, the rest on bc_loss alone, each with fresh goals (ours)
+    bc_polish: int = 5000  # bc_loss steps of the actor alone on the frozen final world model and goal VAE, after the last update (ours; polish)
+    bc_polish_batches: int = 250  # D_body batches whose posterior states the polish computes once and cycles (ours; polish)
 
 
 def bc_loss(actor, post_feat, goal_feat, action, final_goal=None, final_share=0.0):
@@ -39,18 +53,18 @@ def bc_loss(actor, post_feat, goal_feat, action, final_goal=None, final_share=0.
 
 
 def polish(models, cfgs, data, device):
-    """After the last update, ac.bc_polish steps of hindsight behaviour cloning (bc_loss) of the actor alone on
+    """After the last update, bc_polish steps of hindsight behaviour cloning (bc_loss) of the actor alone on
     the frozen final world model and goal VAE (ours): during training the actor clones from posterior states that the
     world model still moves, and cloning on the final ones raised goal reaching (docs/ablations.md, Phase 1). The
-    posterior states of ac.bc_polish_batches D_body batches are computed once and cycled, each step with fresh
+    posterior states of bc_polish_batches D_body batches are computed once and cycled, each step with fresh
     hindsight goals; a fresh Adam at the actor's lr, and RNGs of its own, so that the training's (in the checkpoint)
     are untouched."""
-    wc, ac, tc = cfgs["wm"], cfgs["ac"], cfgs["train"]
+    wc, ac, cc, tc = cfgs["wm"], cfgs["ac"], cfgs["cloning"], cfgs["train"]
     wm, vae, actor = models["world_model"], models["goal_vae"], models["actor"]
     rng, cache = np.random.default_rng([tc.seed, 1]), []
     with torch.random.fork_rng(devices=[]), torch.no_grad():
         torch.manual_seed(tc.seed + 1)
-        for _ in range(min(ac.bc_polish_batches, ac.bc_polish)):
+        for _ in range(min(cc.bc_polish_batches, cc.bc_polish)):
             b = data.sample(wc.batch, rng, device)
             post, _ = wm.observe(b[wc.obs], b["action"], b["is_first"])
             cache.append((wm.feat(post), vae.goal(b["p"]), b["action"], vae.goal(b["p_last"])))
@@ -58,7 +72,7 @@ def polish(models, cfgs, data, device):
     stop = lambda: f"the checkpoint keeps the actor before the polish (a learning rate too high? --ac-actor-lr is {ac.actor_lr})"
     with torch.random.fork_rng(devices=[]):
         torch.manual_seed(tc.seed + 2)
-        for k in tqdm(range(ac.bc_polish), desc="polish the actor (behaviour cloning on the final world model)"):
-            loss, m = bc_loss(actor, *cache[k % len(cache)], ac.bc_final)
+        for k in tqdm(range(cc.bc_polish), desc="polish the actor (behaviour cloning on the final world model)"):
+            loss, m = bc_loss(actor, *cache[k % len(cache)], cc.bc_final)
             policy.checked_step(opt, loss, "the polish's behaviour-cloning loss", k, stop, ac.grad_clip)
-    print(f"polished the actor: {ac.bc_polish} cloning steps on the final world model, bc_loss {m['bc_loss']:.3f}")
+    print(f"polished the actor: {cc.bc_polish} cloning steps on the final world model, bc_loss {m['bc_loss']:.3f}")

@@ -35,7 +35,7 @@ DIVERGED = 1e10  # |loss| above this is divergence (ours: the smoke preset's los
 @dataclass
 class ActorCriticConfig:
     # rundir.check_flags: the values a field may take where not a count (>= 1), a learning rate in (0, 1) or a float >= 0
-    ranges: ClassVar[dict] = {"goal_near": (0, 1), "bc_final": (0, 1), "bc_polish": (0, None), "gamma": (0, 1), "lambda_": (0, 1), "goal_mix": (0, 1),
+    ranges: ClassVar[dict] = {"goal_near": (0, 1), "gamma": (0, 1), "lambda_": (0, 1), "goal_mix": (0, 1),
                               "slow_critic_rate": (0, 1), "return_norm_decay": (0, 1), "grad_clip": "> 0", "min_std": "> 0", "max_std": "> 0",
                               "mean_scale": "> 0"}
     units: int = 256  # MLP width (ours, a CPU budget; Dreamer V1: 400)
@@ -56,11 +56,6 @@ class ActorCriticConfig:
     starts: int = 32  # imagination start states per update (ours: an update's time is linear in them; Dreamer V1: all 50x50 states)
     goal_mix: float = 0.5  # share of goals from the goal encoder, the rest D_body posterior states (ours; sample_goals)
     goal_near: float = 0.5  # share of goals from a later frame of the start state's own segment, reachable in the horizon (ours; sample_goals)
-    bc: float = 1.0  # weight of hindsight behaviour cloning beside Eq. 4's actor loss (ours, a deviation, cloning.bc_loss; 0 = Eq. 4 alone)
-    bc_final: float = 0.5  # share of bc_loss's goals from the episode's last frame, what the benchmark and GIIL-ZS give (ours)
-    bc_steps: int = 10  # actor steps on bc_loss per update: the first with Eq. 4's loss, the rest on bc_loss alone, each with fresh goals (ours)
-    bc_polish: int = 5000  # bc_loss steps of the actor alone on the frozen final world model and goal VAE, after the last update (ours; cloning.polish)
-    bc_polish_batches: int = 250  # D_body batches whose posterior states the polish computes once and cycles (ours; cloning.polish)
 
 
 def goal_share(linear, goal):

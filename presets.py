@@ -14,7 +14,7 @@ import re
 import tokenize
 
 PRESETS = {
-    # phase 1 (train.py; checkpoint.COMPONENTS): TrainConfig, WorldModelConfig, GoalVAEConfig, DistanceConfig, ActorCriticConfig
+    # phase 1 (train.py; checkpoint.COMPONENTS): TrainConfig, WorldModelConfig, GoalVAEConfig, DistanceConfig, ActorCriticConfig, CloningConfig
     "train": {
         "smoke": dict(steps=6, policy_start=2, holdout_every=3, eval_episodes=1, eval_steps=10, log_every=2, checkpoint_every=3,
                       data=os.path.join("data", "smoke")),  # ours: toy
@@ -34,12 +34,12 @@ PRESETS = {
         "paper": dict(contrastive_weight=1.0, input="feat"),  # Eq. 7 as written: both expectations weighed equally, d on [h, z]
     },
     "ac": {
-        "smoke": dict(units=16, horizon=5, bc_polish=4),  # ours: toy
+        "smoke": dict(units=16, horizon=5),  # ours: toy
         "cpu": {},
-        # GenRL: width 1024, horizon 16, all states of a 48x48 batch as starts; Dreamer V1: the layers and rates; Eq. 4 alone
-        "paper": dict(units=1024, horizon=16, starts=48 * 48, actor_layers=4, critic_layers=3, actor_lr=8e-5, critic_lr=8e-5,
-                      bc=0.0, bc_final=0.0, goal_near=0.0, bc_steps=1, bc_polish=0),
+        # GenRL: width 1024, horizon 16, all states of a 48x48 batch as starts; Dreamer V1: the layers and rates
+        "paper": dict(units=1024, horizon=16, starts=48 * 48, actor_layers=4, critic_layers=3, actor_lr=8e-5, critic_lr=8e-5, goal_near=0.0),
     },
+    "cloning": {"smoke": dict(bc_polish=4), "cpu": {}, "paper": dict(bc=0.0, bc_final=0.0, bc_steps=1, bc_polish=0)},  # ours: toy; paper: Eq. 4 alone
     # the datasets (collect.py): CollectConfig
     "collect": {
         "smoke": dict(explore_episodes=2, task_episodes=1, demo_episodes=2, episode_steps=20),  # ours: toy

@@ -188,7 +188,7 @@ def final_report(run_dir, models, cfgs, held_out, device):
 def pretrain(cfgs, run_dir, resume):
     """Phase 1 into run_dir (module docstring): every update Eq. 2, 3 and 7 on one batch of D_body segments, then Eq. 4
     with the hindsight cloning beside it; the log, checkpoints and, after the last update, the polish and the report."""
-    tc, wc, dc, ac = cfgs["train"], cfgs["wm"], cfgs["dist"], cfgs["ac"]
+    tc, wc, dc, ac, cc = cfgs["train"], cfgs["wm"], cfgs["dist"], cfgs["ac"], cfgs["cloning"]
     device = "cuda" if torch.cuda.is_available() else "cpu"
     torch.set_num_threads(tc.threads)
     rundir.fast_matmul()  # oneDNN where it is faster and still fp32 (rundir.py)
@@ -232,17 +232,17 @@ def pretrain(cfgs, run_dir, resume):
                 start, index = policy.sample_starts(post, ac.starts)
                 goals = policy.sample_goals(post_feat, goal_feat, index, batch["is_first"], ac.goal_mix, ac.goal_near)
                 a_loss, c_loss, m4 = policy.policy_losses(wm, dist_net, actor, critic, slow_critic, models["return_norm"], start, goals, ac)
-                # ours, beside Eq. 4: hindsight behaviour cloning of D_body's actions (cloning.py), in ac.bc_steps actor steps
-                clone = lambda: cloning.bc_loss(actor, post_feat, goal_feat, batch["action"], final_goal, ac.bc_final)
-                bc, m_bc = clone() if ac.bc else (0.0, {})
-                if logged and ac.bc:  # Eq. 4's share of the actor's step against the cloning's (evaluate.gradient_share)
-                    m4.update(policy.gradient_norms(actor, eq4=a_loss, bc=ac.bc * bc))
-                update("actor", a_loss + ac.bc * bc, "Eq. 4 actor loss")
+                # ours, beside Eq. 4: hindsight behaviour cloning of D_body's actions (cloning.py), in cc.bc_steps actor steps
+                clone = lambda: cloning.bc_loss(actor, post_feat, goal_feat, batch["action"], final_goal, cc.bc_final)
+                bc, m_bc = clone() if cc.bc else (0.0, {})
+                if logged and cc.bc:  # Eq. 4's share of the actor's step against the cloning's (evaluate.gradient_share)
+                    m4.update(policy.gradient_norms(actor, eq4=a_loss, bc=cc.bc * bc))
+                update("actor", a_loss + cc.bc * bc, "Eq. 4 actor loss")
                 update("critic", c_loss, "Eq. 4 critic loss")
                 policy.ema_update(slow_critic, critic, ac.slow_critic_rate)
-                for _ in range(ac.bc_steps - 1 if ac.bc else 0):  # more cloning steps on this batch, each with fresh goals
+                for _ in range(cc.bc_steps - 1 if cc.bc else 0):  # more cloning steps on this batch, each with fresh goals
                     bc, m_bc = clone()
-                    update("actor", ac.bc * bc, "behaviour-cloning loss")
+                    update("actor", cc.bc * bc, "behaviour-cloning loss")
                 metrics.update(m4 | m_bc)
         if logged:
             metrics.update(step=step + 1, updates_per_s=tc.log_every / (time.time() - t0))
@@ -257,7 +257,7 @@ def pretrain(cfgs, run_dir, resume):
             rundir.append_jsonl(fidelity_path, fidelity.benchmark(models, fidelity_sources, step + 1, run_dir))
         if (step + 1) % tc.checkpoint_every == 0 or step + 1 == total:
             saved = keep(step + 1)
-    if ac.bc and ac.bc_polish:  # ours: cloning on the final world model; the checkpoint keeps the unpolished actor to resume from
+    if cc.bc and cc.bc_polish:  # ours: cloning on the final world model; the checkpoint keeps the unpolished actor to resume from
         unpolished = copy.deepcopy(actor.state_dict())
         cloning.polish(models, cfgs, data, device)
         keep(total, actor_unpolished=unpolished)

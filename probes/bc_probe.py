@@ -57,11 +57,11 @@ if __name__ == "__main__":
                                         seed=cfgs["train"].seed if args.seed is None else args.seed)
     what_the_data_allow(cfgs)
     _, data, _, _ = checkpoint.prepare_data(cfgs)
-    ac = dataclasses.replace(cfgs["ac"], units=args.units or cfgs["ac"].units, actor_layers=args.layers or cfgs["ac"].actor_layers,
-                             bc_polish=args.steps, bc_polish_batches=args.batches, bc_final=args.final_share)
+    ac = dataclasses.replace(cfgs["ac"], units=args.units or cfgs["ac"].units, actor_layers=args.layers or cfgs["ac"].actor_layers)
+    cc = dataclasses.replace(cfgs["cloning"], bc_polish=args.steps, bc_polish_batches=args.batches, bc_final=args.final_share)
     if not args.keep_actor:  # a fresh actor, seeded from the cloning's seed
         with torch.random.fork_rng(devices=[]):
             torch.manual_seed(cfgs["train"].seed + 1)
             models["actor"] = policy.Actor(ac, models["world_model"].feat_dim, models["world_model"].feat_dim, models["world_model"].action_dim)
-    cloning.polish(models, {**cfgs, "ac": ac}, data, "cpu")  # the cloning steps, as train.py's polish runs them
+    cloning.polish(models, {**cfgs, "ac": ac, "cloning": cc}, data, "cpu")  # the cloning steps, as train.py's polish runs them
     print("\n".join(evaluate.summary(evaluate.goal_reaching(models, cfgs, args.episodes, 500))))

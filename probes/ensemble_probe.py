@@ -60,7 +60,7 @@ if __name__ == "__main__":
     actors = [trained] if args.keep_actor else []
     for k in range(len(actors), args.clones):
         clone_cfgs = {**cfgs, "train": dataclasses.replace(cfgs["train"], seed=100 * args.seed + k),
-                      "ac": dataclasses.replace(cfgs["ac"], bc_polish=args.steps, bc_polish_batches=args.batches)}
+                      "cloning": dataclasses.replace(cfgs["cloning"], bc_polish=args.steps, bc_polish_batches=args.batches)}
         models["actor"] = copy.deepcopy(trained)
         if not args.keep_actor:  # a fresh actor, seeded from clone k's cloning seed
             with torch.random.fork_rng(devices=[]):

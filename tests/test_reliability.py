@@ -421,7 +421,7 @@ def test_older_pickled_checkpoint_is_named_and_never_unpickled(smoke_run, tmp_pa
     (lambda c: c["config"]["wm"].update(deter=10**6), r"world_model\.cell\.bias_hh is \(48,\) where its config makes \(3000000,\)"),  # checked on the meta device: no 12 TB
     (lambda c: c["models"]["world_model"].update({"encoder.0.weight": torch.zeros(3, 3)}), r"world_model\.encoder\.0\.weight is \(3, 3\)"),
     (lambda c: c["models"].pop("critic"), r"it has no weights of the critic$"),
-    (lambda c: c["config"].update(foo={}), r"its config names \['ac', 'dist', 'foo', 'goal', 'train', 'wm'\]"),
+    (lambda c: c["config"].update(foo={}), r"its config names \['ac', 'cloning', 'dist', 'foo', 'goal', 'train', 'wm'\]"),
     (lambda c: c["config"]["train"].update(preset="huge"), r"its preset 'huge' is not one of smoke, cpu, paper$"),
     (lambda c: c["config"]["wm"].update(deter="x"), r"its config wm\.deter is 'x', not of type int$"),
 ])

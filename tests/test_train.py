@@ -1,4 +1,5 @@
 """train.py: end to end with the smoke preset, resume, config mismatch, NaN stop, the paper preset's sizes."""
+import dataclasses
 import json
 import os
 import shutil
@@ -202,7 +203,7 @@ def test_a_copy_of_an_exported_agent_trains_on_from_its_weights(smoke_run, smoke
 def test_bc_steps_are_extra_actor_steps(smoke_data, tmp_path):
     """--ac-bc-steps 3: each Eq. 4 update of the actor is followed by 2 steps on bc_loss alone (Adam counts 3 per update);
     the log has the gradient norm of each term."""
-    cfgs = train.resolve_configs(train_args(data=smoke_data, **{"ac.bc": 1.0, "ac.bc_steps": 3}), "smoke")
+    cfgs = train.resolve_configs(train_args(data=smoke_data, **{"cloning.bc": 1.0, "cloning.bc_steps": 3}), "smoke")
     run = train.train(cfgs, str(tmp_path / "bc_steps"), resume=False)
     ckpt = torch.load(os.path.join(run, "checkpoint.pt"), weights_only=True)
     tc = cfgs["train"]
@@ -219,12 +220,12 @@ def test_polish_clones_on_the_final_models_and_leaves_training_untouched(smoke_d
     one; the world model, the training actor (kept as actor_unpolished) and the RNG are those of the same run without
     polish, and a resumed run trains on from the unpolished actor, as if no polish had been."""
     def run(name, steps, polish, resume=False):
-        cfgs = train.resolve_configs(train_args(data=smoke_data, steps=steps, **{"ac.bc": 1.0, "ac.bc_polish": polish}), "smoke")
+        cfgs = train.resolve_configs(train_args(data=smoke_data, steps=steps, **{"cloning.bc": 1.0, "cloning.bc_polish": polish}), "smoke")
         train.train(cfgs, str(tmp_path / name), resume=resume)
         return torch.load(os.path.join(tmp_path, name, "checkpoint.pt"), weights_only=True)
 
     plain, polished = run("plain", 6, 0), run("polished", 6, 20)
-    assert "actor_unpolished" not in plain and polished["config"]["ac"]["bc_polish"] == 20
+    assert "actor_unpolished" not in plain and polished["config"]["cloning"]["bc_polish"] == 20
     same = lambda a, b: a.keys() == b.keys() and all(torch.equal(a[k], b[k]) for k in a)
     assert same(polished["actor_unpolished"], plain["models"]["actor"])
     assert not same(polished["models"]["actor"], plain["models"]["actor"])
@@ -233,12 +234,25 @@ def test_polish_clones_on_the_final_models_and_leaves_training_untouched(smoke_d
     assert same(run("plain", 8, 0, resume=True)["models"]["actor"], run("polished", 8, 0, resume=True)["models"]["actor"])
 
 
+def test_a_config_stored_before_the_cloning_had_its_own_reads_the_actor_critics_cloning_fields(smoke_run, tmp_path):
+    """The shipped agents keep the cloning's fields (bc, bc_final, ...) in the actor-critic's config: they load into
+    cloning.CloningConfig, with the same values, and the run resumes as if stored today."""
+    ckpt = torch.load(os.path.join(smoke_run, "checkpoint.pt"), weights_only=True)
+    old = {k: v for k, v in ckpt["config"].items() if k != "cloning"}
+    old["ac"] = {**ckpt["config"]["ac"], **ckpt["config"]["cloning"], "bc_final": 0.25}
+    torch.save(dict(ckpt, config=old), tmp_path / "checkpoint.pt")
+    cfgs = checkpoint.load_run(str(tmp_path))[0]
+    assert cfgs["cloning"] == dataclasses.replace(checkpoint.load_run(smoke_run)[0]["cloning"], bc_final=0.25)
+    assert cfgs["ac"] == checkpoint.load_run(smoke_run)[0]["ac"]
+
+
 def test_a_stored_config_with_a_deleted_switch_loads_at_its_off_value_and_is_refused_on(smoke_run, tmp_path):
     """The shipped agents store fields of switches since deleted (checkpoint.REMOVED): at their off value they are
     dropped and the run loads and resumes as before; switched on, a one-line error names the flag and where its commit is."""
     ckpt = torch.load(os.path.join(smoke_run, "checkpoint.pt"), weights_only=True)
     off = dict(ckpt["config"], train={**ckpt["config"]["train"], "act_temperature": 0.0, "cover_edges": 0},
-               ac={**ckpt["config"]["ac"], "reward": "distance", "mixture": 1, "bc_polish_fresh": 0, "uncertainty": 0.0})
+               ac={**ckpt["config"]["ac"], "reward": "distance", "mixture": 1, "uncertainty": 0.0},
+               cloning={**ckpt["config"]["cloning"], "bc_polish_fresh": 0})
     torch.save(dict(ckpt, config=off), tmp_path / "checkpoint.pt")
     cfgs, models, _ = checkpoint.load_run(str(tmp_path))
     assert cfgs == checkpoint.load_run(smoke_run)[0]
