@@ -16,7 +16,7 @@ world model, is off: it needs the demonstrator's body), written with this projec
             automatic reward scale), and that scale kept for every later episode. AIME-NoB compares its world
             model's encoder embeddings of agent and demo frames; ours reads states (the cpu default), which a demo
             video does not give, so the features are the video encoder's (those GIIL's goals come from). On the
-            walker's stand cell this reward ranks the agent's own episodes backwards (docs/results.md, Baselines).
+            walker's stand cell this reward ranks the agent's own episodes backwards (docs/baselines.md).
   model     then `updates` updates, each: Eq. 2 (world_model.py) on a batch of which body_ratio are D_body segments
             and the rest segments of this seed's episodes (AIME-NoB mixes its embodiment dataset in, ratio 0.5),
             plus the reward head regressed to the OT labels on the new episodes' posterior states (its gradient
