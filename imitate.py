@@ -8,7 +8,7 @@ import argparse
 import checkpoint
 import envs
 import rundir
-from goal_inference import FINETUNE_FIELDS, SEARCHES, config_flags, imitate, parse_config
+from goal_inference import FINETUNE_FIELDS, SEARCHES, config_flags, imitate, parse_config, parse_online
 
 
 def main():
@@ -28,6 +28,9 @@ def main():
     ic, given = parse_config(args)
     if not args.finetune and any(f in given for f in FINETUNE_FIELDS):
         parser.error(f"--{[f for f in FINETUNE_FIELDS if f in given][0].replace('_', '-')} sets GIIL-FT: add --finetune, or drop it")
+    oc, online_given = parse_online(args, ic.preset)
+    if online_given and not args.online:
+        parser.error(f"--online-{next(iter(online_given)).replace('_', '-')} sets GIIL-online: add --online, or drop it")
     run = args.run or checkpoint.resolve_run(args.env or "walker", ic.preset)
     # before anything runs: the run's agent is the body --env names (with --run) and what its folder's name says
     rundir.run_checkpoint(run, env=args.env)
@@ -37,7 +40,7 @@ def main():
         if other:
             raise ValueError(f"process {other} is running {args.demo} ({args.view} view) on {run} now ({lock}): wait for it to end; "
                              f"the same command then goes on from its rows")
-        imitate(run, args.demo, args.view, ic, [m for m, s in SEARCHES.items() if getattr(args, s.flag)])
+        imitate(run, args.demo, args.view, ic, [m for m, s in SEARCHES.items() if getattr(args, s.flag)], oc)
 
 
 if __name__ == "__main__":

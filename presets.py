@@ -90,6 +90,8 @@ def config_flags(parser, cls, prefix="", dest="", choices=None):
     comments, choices = field_comments(cls), choices or {}
     for field in dataclasses.fields(cls):
         kind = type(field.default)
+        if kind not in (int, float, str, bool):  # a tuple (online's schedule): only a preset sets it
+            continue
         parser.add_argument("--" + prefix + field.name.replace("_", "-"), dest=dest + field.name, type=kind, default=None,
                             choices=choices.get(field.name), metavar=None if field.name in choices else kind.__name__.upper(),
                             help=f"{comments.get(field.name) or cls.__name__ + '.' + field.name} (default {field.default!r}, or the "

@@ -299,10 +299,12 @@ def main():
     goal_inference.config_flags(parser)
     args = parser.parse_args()
     ic, given = goal_inference.parse_config(args)
+    oc, online_given = goal_inference.parse_online(args, ic.preset)
     mode = "--run" if args.run or args.env else "--table" if args.table else "--curves"
     allowed = {"--run": ("methods", "settings", "shard", "budgets", "threads"), "--table": ("budgets",), "--curves": ("settings", "min_seeds", "png")}
     extra = [f for f in ("methods", "settings", "shard", "budgets", "min_seeds", "png", "threads")
              if getattr(args, f) != parser.get_default(f) and f not in allowed[mode]] + ([] if mode == "--run" else list(given))
+    extra += [] if mode == "--run" else ["online_" + f for f in online_given]
     if extra:
         parser.error(f"--{extra[0].replace('_', '-')} does nothing with {mode}: drop it")
     if args.min_seeds < 1:
@@ -317,7 +319,7 @@ def main():
         rundir.use_threads(args.threads)
         run = args.run or checkpoint.resolve_run(args.env, ic.preset)
         rundir.run_checkpoint(run, env=args.env)  # before anything runs: the run's agent is what its folder's name says
-        run_table(checkpoint.work_folder(run), ic, None, settings, shard, (args.methods or "finetune").split(","), budgets)
+        run_table(checkpoint.work_folder(run), ic, oc, settings, shard, (args.methods or "finetune").split(","), budgets)
         return
     paths = args.table or args.curves
     missing = [path for path in paths if not os.path.isfile(path)]
