@@ -19,6 +19,7 @@ from typing import ClassVar
 
 import numpy as np
 import torch
+from tqdm import tqdm
 
 import evaluate
 import ot_reward
@@ -118,11 +119,14 @@ def refine_goal(models, cfgs, make_env, goals, demo_p, cfg, seed, encoder, steps
     """GIIL-online for one seed: goals (G, F) the demos' zero-shot goals (successive halving's candidates), demo_p
     (K, M, D) (the cross-entropy method starts from demo 0's q(s | p_T)) -> (the chosen goal (F,), the demo shown beside
     its video, the log of (candidate or iteration, env seed, OT score))."""
+    bar = tqdm(total=budget(cfg, len(goals)), desc=f"GIIL-online seed {seed}: real episodes", leave=False)
+
     def score(g, env_seed):  # one batch: every goal of g (n, F) from the same start state
         env_list = [make_env() for _ in g]
         p = episode_features(models, env_list, g, steps, cfgs["wm"].obs, [env_seed] * len(g), encoder)
         for env in env_list:
             env.close()
+        bar.update(len(g))
         return ot_score(p, demo_p, ot_cfg)
 
     if cfg.search == "cem":
@@ -130,8 +134,10 @@ def refine_goal(models, cfgs, make_env, goals, demo_p, cfg, seed, encoder, steps
         p_last = torch.as_tensor(demo_p[0][-1], device=goals.device)[None]
         with torch.no_grad():
             m, log = cross_entropy(lambda x, env_seed: score(vae.goals_at(p_last, x), env_seed), vae.deter + vae.stoch, cfg, seed)
+            bar.close()
             return vae.goals_at(p_last, m[None])[0], 0, [entry[:3] for entry in log]
     chosen, log = successive_halving(lambda indices, env_seed: score(goals[indices], env_seed), len(goals), cfg, seed)
+    bar.close()
     return goals[chosen], chosen, log
 
 

@@ -16,8 +16,8 @@ their paired difference on B is what a search that ranked this set perfectly wou
     python probes/goal_candidates.py --run agents/walker --demo walker_walk --view side --out rows.jsonl
     python probes/goal_candidates.py --table rows.jsonl [more.jsonl ...]
     python probes/goal_candidates.py --paired docs/results/online_*.jsonl   # GIIL-online: posterior vs demos candidates
-    python probes/goal_candidates.py --scorers --run agents/walker --demo walker_walk --out rows.jsonl   # the OT scorer
-    python probes/goal_candidates.py --scorers --table rows.jsonl
+
+Which scorer of real episodes ranks these goals: probes/scorers.py.
 """
 import argparse
 import os
@@ -33,7 +33,6 @@ import collect  # noqa: E402
 import envs  # noqa: E402
 import evaluate  # noqa: E402
 import rundir  # noqa: E402
-from evaluate import spearman  # noqa: E402
 from goal_variance import split  # noqa: E402
 
 SEEDS_A, SEEDS_B = 70_000, 80_000  # start states of the sets' runs and of the re-runs (neither GIIL-FT's nor online.py's)
@@ -85,58 +84,6 @@ def probe(run, demo, view, episodes, out):
     return rows
 
 
-PREFIXES = (100, 200, envs.EPISODE_STEPS)  # scorers: the OT reward of an episode's first n steps against the demos' first n
-
-
-def scorer_probe(run, demo, view, episodes, out):
-    """How well the OT reward of real episodes ranks GIIL-online's posterior candidates (online.posterior_goals) by their
-    true score on other start states: each goal's episodes from seeds A scored by the OT reward of the first n steps
-    (features of the agent's own frames against the demos' first n, online.ot_score) and by the true return, and
-    its true score from seeds B. One row per cell."""
-    import online
-    import ot_reward
-    from video_encoder import load_encoder
-
-    cfgs, models, _ = checkpoint.load_run(run, "cpu")
-    torch.set_num_threads(1)
-    rundir.fast_matmul()
-    task, encoder = demo.rsplit("_", 1)[1], load_encoder(cfgs["train"].encoder)
-    demo_p = np.stack([d["p"] for d in collect.load_folder(checkpoint.demo_folder(cfgs, demo, view), ("p",))])
-    goals = online.posterior_goals(models["goal_vae"], demo_p[0][-1], 10, seed=0)
-    ot, true_a = {n: [] for n in PREFIXES}, []
-    for e in range(episodes):
-        env_list = [envs.make_env(cfgs["train"].env, task) for _ in goals]
-        with torch.no_grad():
-            returns, frames = evaluate.run_episodes(env_list, models, goals, envs.EPISODE_STEPS, cfgs["wm"].obs, [SEEDS_A + e] * len(goals), render=True)
-        p = np.stack([encoder(f) for f in frames])  # (10, T + 1, D)
-        for n in PREFIXES:
-            ot[n].append(online.ot_score(p[:, : n + 1], demo_p[:, : n + 1], ot_reward.OTConfig()).tolist())
-        true_a.append([evaluate.episode_score(task, r, envs.EPISODE_STEPS) for r in returns])
-    true_b = scores(models, cfgs, task, goals, episodes, SEEDS_B)
-    row = dict(agent=cfgs["train"].env, demo=demo, view=view, episodes=episodes, ot_a={str(n): v for n, v in ot.items()},
-               true_a=true_a, true_b=true_b.tolist())
-    rundir.append_jsonl(out, row)
-    print(f"{demo} {view}: " + " ".join(f"OT{n} {spearman(np.mean(ot[n], 0), true_b.mean(1)):+.2f}" for n in PREFIXES)
-          + f" | true on A {spearman(np.mean(true_a, 0), true_b.mean(1)):+.2f} (Spearman against the true score on B)")
-    return row
-
-
-def scorer_table(rows):
-    """Markdown: per agent, the mean over cells of Spearman(scorer on A, true score on B), with all A episodes and one."""
-    lines = ["| agent | cells | " + " | ".join(f"OT of the first {n} steps, {k}" for n in PREFIXES for k in ("all episodes", "one"))
-             + " | true score on A (ceiling) |", "|---|---|" + "---|" * (2 * len(PREFIXES) + 1)]
-    for agent in sorted({r["agent"] for r in rows}):
-        sel = [r for r in rows if r["agent"] == agent]
-        b = [np.mean(r["true_b"], 1) for r in sel]
-        cols = []
-        for n in PREFIXES:
-            cols.append(np.mean([spearman(np.mean(r["ot_a"][str(n)], 0), bb) for r, bb in zip(sel, b)]))
-            cols.append(np.mean([spearman(r["ot_a"][str(n)][0], bb) for r, bb in zip(sel, b)]))
-        ceiling = np.mean([spearman(np.mean(r["true_a"], 0), bb) for r, bb in zip(sel, b)])
-        lines.append(f"| {agent} | {len(sel)} | " + " | ".join(f"{c:+.2f}" for c in cols) + f" | {ceiling:+.2f} |")
-    return "\n".join(lines)
-
-
 def table(rows):
     """Markdown: per agent and set, the mean over cells of the set's mean, goal s.d., and the paired gain on B."""
     lines = ["| agent | candidates | cells | mean score | goal s.d. | best on A, re-run on B | ZS (demo 0) on B | paired gain +- s.e. |",
@@ -182,12 +129,8 @@ if __name__ == "__main__":
     parser.add_argument("--out", help="JSONL the rows are appended to")
     parser.add_argument("--table", nargs="+", metavar="JSONL", help="print the markdown table of these rows, then exit")
     parser.add_argument("--paired", nargs="+", metavar="JSONL", help="GIIL-online rows (imitate.py): posterior against demos candidates")
-    parser.add_argument("--scorers", action="store_true", help="with --run --demo --out: how the OT reward ranks the posterior "
-                        "candidates (scorer_probe); with --table: the table of such rows")
     args = parser.parse_args()
-    if args.table and args.scorers:
-        print(scorer_table([row for path in args.table for row in rundir.read_jsonl(path)]))
-    elif args.table:
+    if args.table:
         print(table([row for path in args.table for row in rundir.read_jsonl(path)]))
     elif args.paired:
         print(paired([row for path in args.paired for row in rundir.read_jsonl(path)]))
@@ -195,4 +138,4 @@ if __name__ == "__main__":
         parser.error("pass --run, --demo and --out (or --table)")
     else:
         for demo in args.demo:
-            (scorer_probe if args.scorers else probe)(args.run, demo, args.view, args.episodes, args.out)
+            probe(args.run, demo, args.view, args.episodes, args.out)

@@ -173,11 +173,27 @@ def test_goal_candidates_probe_sets_and_pairing(smoke_run):
     rows = [row("GIIL-ZS (demo 0)", 0, 40.0), row("GIIL-ZS (demo 0)", 1, 50.0), row("GIIL-online", 0, 45.0), row("GIIL-online", 1, 45.0),
             row("GIIL-online", 0, 50.0, candidates="posterior"), row("GIIL-online", 1, 44.0, candidates="posterior")]
     assert probe.paired(rows).splitlines()[-1] == "| walker | SE-SV run (2 pairs) | 47.0 +- 3.0 | +2.0 +- 8.0 | +2.0 +- 3.0 |"
-    # the scorer table: a scorer that orders the goals as their true score on B does ranks at +1, its reverse at -1
-    b = [[float(k)] * 2 for k in range(10)]
-    same, reverse = [list(range(10))] * 2, [list(range(10))[::-1]] * 2
-    scorer_row = dict(agent="walker", ot_a={"100": same, "200": reverse, "500": same}, true_a=same, true_b=b)
-    assert probe.scorer_table([scorer_row]).splitlines()[-1] == "| walker | 1 | +1.00 | +1.00 | -1.00 | -1.00 | +1.00 | +1.00 | +1.00 |"
+
+
+def test_scorers_rank_the_demo_first_and_the_table_reads_held_out_ranks():
+    """probes/scorers.py: an agent episode equal to a demo scores above random features under every scorer, above its
+    own frames shuffled only where the order counts (same step; whole-episode OT is blind to it); the table ranks a
+    scorer ordered as the true score at +1 held out (A against B and back), its reverse at -1."""
+    scorers = probe_script("scorers")
+    rng = np.random.default_rng(0)
+    demo = rng.standard_normal((2, 12, 16)).astype(np.float32)
+    agent = np.stack([demo[1], demo[1][rng.permutation(12)], rng.standard_normal((12, 16)).astype(np.float32)])
+    for name, scorer in scorers.SCORERS.items():
+        s = np.asarray(scorer(agent, demo))
+        assert s.shape == (3,) and s[0] > s[2], name
+    same_step = scorers.SCORERS["same step"](agent, demo)
+    whole = scorers.SCORERS["OT"](agent, demo)
+    assert same_step[0] > same_step[1] + 0.5 and abs(whole[0] - whole[1]) < 1e-4
+    true = [[[float(g)] * 3 for g in range(10)]] * 2  # (A/B, goal, episode)
+    row = dict(agent="walker", true=true, scores={"good": true, "bad": [[[-float(g)] * 3 for g in range(10)]] * 2})
+    lines = scorers.table([row]).splitlines()
+    assert lines[2] == "| walker | 1 | good | +1.00 +- 0.00 | +1.00 | +1.00 |" and lines[3].startswith("| walker | 1 | bad | -1.00")
+    assert lines[4].startswith("| walker | 1 | true score (ceiling) | +1.00")
 
 
 def test_goal_variance_splits_goal_from_episode_noise():
