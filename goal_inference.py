@@ -142,16 +142,13 @@ def giil_ft(cell, seed):
 
 
 def giil_online(cell, seed):
-    """ours, after Sec. 6 (online.py): the goal chosen by the OT reward of real rollouts, among the demos' zero-shot
-    goals (successive halving, 20 episodes per seed) or in q(s | p_T) (--online-search cem, 50), 3 seeds."""
+    """ours, after Sec. 6 (online.py): the goal chosen among the demos' zero-shot goals by the OT reward of real
+    rollouts, 50 episodes per seed, 3 seeds."""
     tc, ic = cell.cfgs["train"], cell.ic
     goal, k, log = online.refine_goal(cell.models, cell.cfgs, lambda: envs.make_env(tc.env, cell.task), torch.stack(cell.goals),
                                       np.stack([d["p"] for d in cell.demos]), cell.oc, seed, load_encoder(tc.encoder), ic.eval_steps,
                                       cell.ot_cfg)
-    entries = [[i, s, round(score, 4)] for i, s, score in log]  # (candidate, env seed, OT score); cem: (iteration, ...)
-    if cell.oc.search == "cem":
-        return goal, k, {"env_steps": len(log) * ic.eval_steps, "cem_log": entries}
-    return goal, k, {"env_steps": len(log) * ic.eval_steps, "ot_log": entries, "chosen_demo": k}
+    return goal, k, {"env_steps": len(log) * ic.eval_steps, "ot_log": [[i, s, round(score, 4)] for i, s, score in log], "chosen_demo": k}
 
 
 @dataclasses.dataclass(frozen=True)
@@ -268,7 +265,7 @@ def config_flags(parser):
     """--<field> of every ImitateConfig field and --online-<field> of OnlineConfig's (the preset's value unless given);
     parse_config and parse_online read them back."""
     presets.config_flags(parser, ImitateConfig, choices=CHOICES)
-    presets.config_flags(parser, online.OnlineConfig, "online-", "online_", choices={"search": online.SEARCHES})
+    presets.config_flags(parser, online.OnlineConfig, "online-", "online_")
 
 
 def parse_config(args):
@@ -282,5 +279,5 @@ def parse_online(args, preset):
     given = {f.name: getattr(args, "online_" + f.name) for f in dataclasses.fields(online.OnlineConfig)
              if getattr(args, "online_" + f.name, None) is not None}
     oc = online.OnlineConfig(**{**presets.PRESETS["online"][preset], **given})
-    online.check_config(oc)
+    rundir.check_flags(oc, "online-")
     return oc, given

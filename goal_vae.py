@@ -82,14 +82,10 @@ class GoalVAE(nn.Module):
     def sample_goals(self, p, n, generator=None, scale=1.0):
         """n draws s^g ~ q(s | p) as goal vectors, from `generator`'s standard normal noise multiplied by `scale` (a
         Gaussian's std times scale; a categorical z's draws flatter for scale > 1): p (1, D) -> (n, deter + stoch)."""
-        return self.goals_at(p, scale * torch.randn(n, self.deter + self.stoch, generator=generator))
-
-    def goals_at(self, p, noise):
-        """The goals s^g of q(s | p) at given standard normal noises (n, deter + stoch), noise 0 its mean (a categorical
-        z: its mode): the coordinates GIIL-online's search moves in. p (1, D) -> (n, deter + stoch)."""
         assert p.shape == (1, self.feat_dim), p.shape
         mean_h, std_h, stats = self.distribution(p)
-        return self._sample(mean_h, std_h, stats, noise.to(mean_h.device))
+        noise = torch.randn(n, self.deter + self.stoch, generator=generator).to(mean_h.device)
+        return self._sample(mean_h, std_h, stats, scale * noise)
 
     def decode(self, feat):
         """p_hat, the mean direction of p(p_t | s): feat (..., deter + stoch) -> unit vectors (..., D)."""

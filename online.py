@@ -15,7 +15,6 @@ best by their mean OT score over all their episodes so far. The cpu schedule, 10
 (25,000 agent steps, 50,000 env steps: AIME-NoB's budget). The goal chosen is the best survivor; it is evaluated on environment seeds never used here.
 """
 import dataclasses
-from typing import ClassVar
 
 import numpy as np
 import torch
@@ -26,37 +25,16 @@ import ot_reward
 import rundir
 
 
-SEARCHES = ("halving", "cem")
-
-
 @dataclasses.dataclass
 class OnlineConfig:
     # (candidates kept, episodes each) per round (ours): 10 x 2, 4 x 3, 2 x 9 = 50 episodes, AIME-NoB's 50,000 env steps
     schedule: tuple = ((10, 2), (4, 3), (2, 9))
     seed_base: int = 50_000  # refinement env seeds: seed_base + 1000 seed + i, apart from the evaluation's 20000 + 100 seed + e
-    search: str = "halving"  # "halving" among the demos' zero-shot goals, or "cem" in q(s | p_T)'s noise coordinates
-    iterations: int = 5  # cem (ours): 5 x 10 = 50 episodes, AIME-NoB's 50,000 env steps
-    population: int = 10  # cem: the mean and 9 draws per iteration, from one start state
-    elites: int = 3  # cem: the new mean is the mean of the best 3
-    spread: float = 1.0  # cem: the draws' first std in noise units (1: q(s | p_T)'s own spread)
-    shrink: float = 0.7  # cem: the std's factor per iteration (1, 0.7, 0.49, ...)
     seeds: int = 3  # GIIL-online seeds (as the paper's non-zero-shot methods), each paired with GIIL-ZS (demo 0)
-    ranges: ClassVar[dict] = {"spread": "> 0", "shrink": (0, 1)}
-
-
-def check_config(cfg):
-    """One-line ValueError naming the --online-* flag out of range."""
-    rundir.check_flags(cfg, "online-")
-    if cfg.search not in SEARCHES:
-        raise ValueError(f"--online-search {cfg.search}: choose from {', '.join(SEARCHES)}")
-    if cfg.elites > cfg.population:
-        raise ValueError(f"--online-elites {cfg.elites}: must be at most --online-population {cfg.population}")
 
 
 def budget(cfg, candidates):
-    """Real episodes the search spends (successive halving on `candidates` goals)."""
-    if cfg.search == "cem":
-        return cfg.iterations * cfg.population
+    """Real episodes the schedule spends on `candidates` goals."""
     return sum(min(keep, candidates) * episodes for keep, episodes in cfg.schedule)
 
 
@@ -98,27 +76,9 @@ def successive_halving(score, n_candidates, cfg, seed):
     return min(alive, key=lambda k: (-mean[k], k)), log
 
 
-def cross_entropy(score, dim, cfg, seed):
-    """Choose a goal by the cross-entropy method (Rubinstein 1999; the planner of PETS and TD-MPC) in the goal encoder's
-    noise coordinates x (goal_vae.goals_at: x = 0 is q(s | p_T)'s mean, GIIL-ZS's goal; a standard normal x one of its
-    draws). Iteration i runs the mean m and `population` - 1 draws from N(m, spread^2 I), one episode each, all from one
-    start state (common random numbers); m <- the mean of the `elites` best by score(x (n, dim), env_seed) -> (n,)
-    OT scores; spread <- spread * shrink. -> (the last m (dim,), log: a list of (iteration, env_seed, score, x))."""
-    gen = torch.Generator().manual_seed(seed)
-    m, spread, log = torch.zeros(dim), cfg.spread, []
-    for i in range(cfg.iterations):
-        env_seed = cfg.seed_base + 1000 * seed + i
-        x = torch.cat([m[None], m + spread * torch.randn(cfg.population - 1, dim, generator=gen)])
-        scores = np.asarray(score(x, env_seed))
-        log += [(i, env_seed, float(s), xx) for s, xx in zip(scores, x)]
-        m, spread = x[np.argsort(-scores, kind="stable")[: cfg.elites]].mean(0), spread * cfg.shrink
-    return m, log
-
-
 def refine_goal(models, cfgs, make_env, goals, demo_p, cfg, seed, encoder, steps, ot_cfg):
-    """GIIL-online for one seed: goals (G, F) the demos' zero-shot goals (successive halving's candidates), demo_p
-    (K, M, D) (the cross-entropy method starts from demo 0's q(s | p_T)) -> (the chosen goal (F,), the demo shown beside
-    its video, the log of (candidate or iteration, env seed, OT score))."""
+    """GIIL-online for one seed: goals (G, F) the candidates (the demos' zero-shot goals), demo_p (K, M, D) ->
+    (the chosen goal (F,), its index, the log of (index, env seed, OT score))."""
     bar = tqdm(total=budget(cfg, len(goals)), desc=f"GIIL-online seed {seed}: real episodes", leave=False)
 
     def score(g, env_seed):  # one batch: every goal of g (n, F) from the same start state
@@ -129,13 +89,6 @@ def refine_goal(models, cfgs, make_env, goals, demo_p, cfg, seed, encoder, steps
         bar.update(len(g))
         return ot_score(p, demo_p, ot_cfg)
 
-    if cfg.search == "cem":
-        vae = models["goal_vae"]
-        p_last = torch.as_tensor(demo_p[0][-1], device=goals.device)[None]
-        with torch.no_grad():
-            m, log = cross_entropy(lambda x, env_seed: score(vae.goals_at(p_last, x), env_seed), vae.deter + vae.stoch, cfg, seed)
-            bar.close()
-            return vae.goals_at(p_last, m[None])[0], 0, [entry[:3] for entry in log]
     chosen, log = successive_halving(lambda indices, env_seed: score(goals[indices], env_seed), len(goals), cfg, seed)
     bar.close()
     return goals[chosen], chosen, log
@@ -160,10 +113,10 @@ def plot_curves(rows, path):
     import matplotlib.pyplot as plt
 
     fig, ax = plt.subplots(figsize=(6, 3.6))
-    cells = sorted({(r["demo"], r["view"]) for r in rows if r["method"] == "GIIL-online" and "ot_log" in r})  # halving's
+    cells = sorted({(r["demo"], r["view"]) for r in rows if r["method"] == "GIIL-online"})
     for demo, view in cells:
         zs = {r["seed"]: r["score"] for r in rows if r["method"] == "GIIL-ZS" and (r["demo"], r["view"]) == (demo, view)}
-        runs = [r for r in rows if r["method"] == "GIIL-online" and (r["demo"], r["view"]) == (demo, view) and "ot_log" in r]
+        runs = [r for r in rows if r["method"] == "GIIL-online" and (r["demo"], r["view"]) == (demo, view)]
         curves = np.array([[zs[k] for k in choice_curve(r["ot_log"], len(zs))] for r in runs])  # (seeds, episodes + 1)
         steps = np.arange(curves.shape[1]) * runs[0]["env_steps"] / (curves.shape[1] - 1)
         line, = ax.plot(steps, curves.mean(0), label=f"{runs[0]['setting']} {runs[0]['task']} ({demo}, {view})")

@@ -39,7 +39,7 @@ def cell_rows(rows):
     for key in sorted({(r["agent"], r["setting"], r["task"], r["demo"], r["view"]) for r in rows if r["method"] == "GIIL-ZS"}):
         zs = {r["seed"]: r for r in rows if r["method"] == "GIIL-ZS" and (r["agent"], r["setting"], r["task"], r["demo"], r["view"]) == key}
         g, e, rel = split([zs[k]["episode_scores"] for k in sorted(zs)])
-        online = [r for r in rows if r["method"] == "GIIL-online" and "ot_log" in r and (r["agent"], r["setting"], r["task"], r["demo"], r["view"]) == key]
+        online = [r for r in rows if r["method"] == "GIIL-online" and (r["agent"], r["setting"], r["task"], r["demo"], r["view"]) == key]
         first = [evaluate.spearman([s for _, _, s in r["ot_log"][:len(zs)]], [zs[i]["score"] for i, _, _ in r["ot_log"][:len(zs)]]) for r in online]
         out[key[:3]] = (g, e, rel, np.mean([z["score"] for z in zs.values()]), first)
     return out

@@ -247,6 +247,12 @@ def test_ft_pairs_pairs_seeds_of_two_variants(tmp_path):
             f.write("".join(json.dumps(r) + "\n" for r in rows))
     got = [(r["seed"], r["score"], b, zs0) for r, b, zs0 in ft_pairs.pairs(str(tmp_path / "a"), str(tmp_path / "b"))]
     assert got == [(0, 45.0, 50.0, 40.0), (1, 60.0, 51.0, 40.0)]  # walker_run's copied row is no pair
+    # GIIL-online's rows, from .jsonl files as committed
+    for name, rows in runs.items():
+        online = ({**r, "method": "GIIL-online"} if r["method"] == "GIIL-FT" else r for r in rows)
+        (tmp_path / f"{name}.jsonl").write_text("".join(json.dumps(r) + "\n" for r in online))
+    got = [(r["seed"], r["score"], b, zs0) for r, b, zs0 in ft_pairs.pairs(str(tmp_path / "a.jsonl"), str(tmp_path / "b.jsonl"), "GIIL-online")]
+    assert got == [(0, 45.0, 50.0, 40.0), (1, 60.0, 51.0, 40.0)]
 
 
 def test_reward_probe_scores_saved_actors_in_the_real_body_and_in_imagination(smoke_run, tmp_path):

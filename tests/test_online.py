@@ -5,7 +5,6 @@ import subprocess
 import sys
 
 import numpy as np
-import pytest
 import torch
 
 import checkpoint
@@ -54,19 +53,18 @@ class NoRewardEnv:
         return (obs, float(self.rng.normal(0, 1e6)), *rest)
 
 
-@pytest.mark.parametrize("search", online.SEARCHES)
-def test_refinement_never_reads_the_task_reward(smoke_run, search):
+def test_refinement_never_reads_the_task_reward(smoke_run):
     cfgs, models, _ = checkpoint.load_run(smoke_run)
     goals = models["goal_vae"].goal(torch.randn(3, models["goal_vae"].feat_dim)).detach()
     demo_p = np.random.default_rng(0).standard_normal((2, 11, models["goal_vae"].feat_dim)).astype(np.float32)
     encoder = video_encoder.load_encoder("default")
-    cfg = online.OnlineConfig(schedule=((3, 1), (2, 1)), search=search, iterations=2, population=3, elites=1)
+    cfg = online.OnlineConfig(schedule=((3, 1), (2, 1)))
     ot_cfg = goal_inference.ot_reward.OTConfig(iters=5)
     rng = np.random.default_rng(0)
     plain = online.refine_goal(models, cfgs, lambda: envs.make_env("walker", "run"), goals, demo_p, cfg, 0, encoder, 10, ot_cfg)
     poisoned = online.refine_goal(models, cfgs, lambda: NoRewardEnv(envs.make_env("walker", "run"), rng), goals, demo_p, cfg, 0, encoder, 10, ot_cfg)
     assert plain[1] == poisoned[1] and plain[2] == poisoned[2] and torch.equal(plain[0], poisoned[0])  # the same choice from the same OT scores
-    assert len(plain[2]) == online.budget(cfg, 3) == (5 if search == "halving" else 6)
+    assert len(plain[2]) == online.budget(cfg, 3) == 5
 
 
 def test_online_end_to_end_pairs_with_its_zero_shot_start(smoke_run):
@@ -103,39 +101,8 @@ def test_finetune_and_online_share_their_zero_shot_start(smoke_run):
     assert sum(r["method"] == "GIIL-online" for r in rows) == oc.seeds
 
 
-def test_cross_entropy_moves_the_goal_towards_the_better_scores_under_noise():
-    """A score peaked away from q(s | p_T)'s mean (noise 0): the cross-entropy method's mean ends nearer the peak than
-    it started, spends iterations x population episodes, and each iteration's goals share one start state."""
-    dim, peak = 8, torch.full((8,), 1.5)
-    cfg = online.OnlineConfig(search="cem")
-    for seed in range(5):
-        rng, seen = np.random.default_rng(seed), []
-
-        def score(x, env_seed):
-            seen.append((len(x), env_seed))
-            return -((x - peak) ** 2).sum(-1).numpy() + 0.5 * rng.standard_normal(len(x))
-
-        m, log = online.cross_entropy(score, dim, cfg, seed)
-        assert (m - peak).norm() < 0.75 * peak.norm()  # 4.24 at the start; 1.5-2.9 over seeds 0-7
-        assert len(log) == online.budget(cfg, 10) == 50
-        assert seen == [(10, cfg.seed_base + 1000 * seed + i) for i in range(5)]
-        assert torch.equal(log[0][3], torch.zeros(dim))  # the first goal run is GIIL-ZS's
-
-
-def test_goals_at_noise_zero_is_the_zero_shot_goal(smoke_run):
-    _, models, _ = checkpoint.load_run(smoke_run)
-    vae, p = models["goal_vae"], torch.randn(1, models["goal_vae"].feat_dim)
-    with torch.no_grad():
-        assert torch.equal(vae.goals_at(p, torch.zeros(1, vae.deter + vae.stoch)), vae.goal(p))
-        gen = torch.Generator().manual_seed(2)
-        noise = torch.randn(3, vae.deter + vae.stoch, generator=torch.Generator().manual_seed(2))
-        assert torch.equal(vae.sample_goals(p, 3, gen), vae.goals_at(p, noise))
-
-
-def test_online_flags_are_checked_and_need_online(tmp_path):
-    with pytest.raises(ValueError, match="--online-elites 11: must be at most --online-population 10"):
-        online.check_config(online.OnlineConfig(search="cem", elites=11))
-    with pytest.raises(ValueError, match="--online-shrink 1.5: must be in"):
-        online.check_config(online.OnlineConfig(shrink=1.5))
-    out = subprocess.run([sys.executable, "imitate.py", "--demo", "walker_run", "--online-search", "cem"], capture_output=True, text=True)
-    assert out.returncode == 2 and "--online-search sets GIIL-online: add --online, or drop it" in out.stderr
+def test_online_flags_are_checked_and_need_online():
+    for flags, message in ((["--online-seeds", "2"], "--online-seeds sets GIIL-online: add --online, or drop it"),
+                           (["--online", "--online-seeds", "0"], "--online-seeds 0: must be >= 1")):
+        out = subprocess.run([sys.executable, "imitate.py", "--demo", "walker_run", *flags], capture_output=True, text=True)
+        assert out.returncode != 0 and message in out.stderr, out.stderr
