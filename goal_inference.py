@@ -252,6 +252,9 @@ def imitate(run_dir, demo, view, ic, searches=(), oc=None, zero_shot=True, done=
                 t0 = time.time()  # the search's time: the search and its evaluation
                 goal, k, extra = SEARCHES[method].search(cell, seed)
                 evaluate_goal(method, seed, goal, k, t0, **extra)
+    if "GIIL-online" in searches and zero_shot:  # the curve of the goal chosen after each real episode (its GIIL-ZS score)
+        counted = rundir.finished(rundir.load_results(run_dir), demo, view, demo_returns, {m: result_config(ic, m, oc) for m in METHODS}, weights)
+        print(f"wrote {online.plot_curves(counted, os.path.join(out_dir, f'{demo}_{view}_online_curve.png'))}")
     for method in METHODS:
         scores = [r["score"] for r in rows if r["method"] == method]
         if scores:

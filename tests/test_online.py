@@ -92,6 +92,15 @@ def test_posterior_goals_start_at_the_zero_shot_goal(smoke_run):
     assert len(torch.unique(goals, dim=0)) == 10
 
 
+def test_online_with_its_zero_shot_column_writes_the_curve(smoke_run):
+    """imitate.py --online's cell: GIIL-ZS of every demo, then GIIL-online, and the curve of the goal it would choose
+    after each real episode, a PNG beside the cell's videos."""
+    oc = online.OnlineConfig(**presets.PRESETS["online"]["smoke"])
+    goal_inference.imitate(smoke_run, "walker_stand", "side", SMOKE, ["GIIL-online"], oc)
+    path = os.path.join(checkpoint.work_folder(smoke_run), "imitate", "walker_stand_side_online_curve.png")
+    assert os.path.getsize(path) > 1000 and open(path, "rb").read(8) == b"\x89PNG\r\n\x1a\n"
+
+
 def test_finetune_and_online_share_their_zero_shot_start(smoke_run):
     """One command with both: GIIL-ZS (demo 0) once per seed, not once per method."""
     oc = online.OnlineConfig(**presets.PRESETS["online"]["smoke"])
