@@ -12,7 +12,8 @@ among candidate latents, Rupf et al. 2025): the candidates are the zero-shot goa
 surviving candidate for `schedule[r][1]` episodes from the same environment seeds (common random numbers: the
 candidates are compared on the same start states), then keeps the `schedule[r + 1][0]`
 best by their mean OT score over all their episodes so far. The cpu schedule, 10 x 2, 4 x 3, 2 x 9, is 50 episodes
-(25,000 agent steps, 50,000 env steps: AIME-NoB's budget). The goal chosen is the best survivor; it is evaluated on environment seeds never used here.
+(25,000 agent steps, 50,000 env steps: AIME-NoB's budget). The goal chosen is the best survivor; it is evaluated on
+environment seeds never used here.
 """
 import dataclasses
 
@@ -81,15 +82,15 @@ def refine_goal(models, cfgs, make_env, goals, demo_p, cfg, seed, encoder, steps
     (the chosen goal (F,), its index, the log of (index, env seed, OT score))."""
     bar = tqdm(total=budget(cfg, len(goals)), desc=f"GIIL-online seed {seed}: real episodes", leave=False)
 
-    def score(g, env_seed):  # one batch: every goal of g (n, F) from the same start state
-        env_list = [make_env() for _ in g]
-        p = episode_features(models, env_list, g, steps, cfgs["wm"].obs, [env_seed] * len(g), encoder)
+    def score(indices, env_seed):  # one batch: every candidate from the same start state
+        env_list = [make_env() for _ in indices]
+        p = episode_features(models, env_list, goals[indices], steps, cfgs["wm"].obs, [env_seed] * len(indices), encoder)
         for env in env_list:
             env.close()
-        bar.update(len(g))
+        bar.update(len(indices))
         return ot_score(p, demo_p, ot_cfg)
 
-    chosen, log = successive_halving(lambda indices, env_seed: score(goals[indices], env_seed), len(goals), cfg, seed)
+    chosen, log = successive_halving(score, len(goals), cfg, seed)
     bar.close()
     return goals[chosen], chosen, log
 

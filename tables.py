@@ -303,8 +303,8 @@ def main():
     mode = "--run" if args.run or args.env else "--table" if args.table else "--curves"
     allowed = {"--run": ("methods", "settings", "shard", "budgets", "threads"), "--table": ("budgets",), "--curves": ("settings", "min_seeds", "png")}
     extra = [f for f in ("methods", "settings", "shard", "budgets", "min_seeds", "png", "threads")
-             if getattr(args, f) != parser.get_default(f) and f not in allowed[mode]] + ([] if mode == "--run" else list(given))
-    extra += [] if mode == "--run" else ["online_" + f for f in online_given]
+             if getattr(args, f) != parser.get_default(f) and f not in allowed[mode]]
+    extra += [] if mode == "--run" else list(given) + ["online_" + f for f in online_given]
     if extra:
         parser.error(f"--{extra[0].replace('_', '-')} does nothing with {mode}: drop it")
     if args.min_seeds < 1:

@@ -113,5 +113,6 @@ def test_finetune_and_online_share_their_zero_shot_start(smoke_run):
 def test_online_flags_are_checked_and_need_online():
     for flags, message in ((["--online-seeds", "2"], "--online-seeds sets GIIL-online: add --online, or drop it"),
                            (["--online", "--online-seeds", "0"], "--online-seeds 0: must be >= 1")):
-        out = subprocess.run([sys.executable, "imitate.py", "--demo", "walker_run", *flags], capture_output=True, text=True)
+        out = subprocess.run([sys.executable, "imitate.py", "--demo", "walker_run", *flags], capture_output=True, text=True,
+                             cwd=os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
         assert out.returncode != 0 and message in out.stderr, out.stderr
