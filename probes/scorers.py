@@ -110,16 +110,16 @@ def held_out(scored, true, n=None):
 
 
 def table(rows):
-    """Markdown: per agent and scorer, the held-out Spearman averaged over cells (and the worst cell), with all of a
-    goal's episodes and with one; the true score's own ceiling last."""
-    lines = ["| agent | cells | scorer | held-out Spearman, all episodes | worst cell | one episode |", "|---|---|---|---|---|---|"]
-    for agent in sorted({r["agent"] for r in rows}):
-        sel = [r for r in rows if r["agent"] == agent]
+    """Markdown: per agent, view and scorer, the held-out Spearman averaged over cells (and the worst cell), with all of
+    a goal's episodes and with one; the true score's own ceiling last."""
+    lines = ["| agent | view | cells | scorer | held-out Spearman, all episodes | worst cell | one episode |", "|---|---|---|---|---|---|---|"]
+    for agent, view in sorted({(r["agent"], r["view"]) for r in rows}, key=lambda k: (k[0], k[1] != "side")):
+        sel = [r for r in rows if (r["agent"], r["view"]) == (agent, view)]
         for name in [*sel[0]["scores"], "true score (ceiling)"]:
             got = [r["scores"][name] if name in r["scores"] else r["true"] for r in sel]
             cells = [held_out(g, r["true"]) for g, r in zip(got, sel)]
             one = np.mean([held_out(g, r["true"], 1) for g, r in zip(got, sel)])
-            lines.append(f"| {agent} | {len(sel)} | {name} | {np.mean(cells):+.2f} +- {evaluate.stderr(cells):.2f} | "
+            lines.append(f"| {agent} | {view} | {len(sel)} | {name} | {np.mean(cells):+.2f} +- {evaluate.stderr(cells):.2f} | "
                          f"{min(cells):+.2f} | {one:+.2f} |")
     return "\n".join(lines)
 

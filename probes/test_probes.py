@@ -190,10 +190,10 @@ def test_scorers_rank_the_demo_first_and_the_table_reads_held_out_ranks():
     whole = scorers.SCORERS["OT"](agent, demo)
     assert same_step[0] > same_step[1] + 0.5 and abs(whole[0] - whole[1]) < 1e-4
     true = [[[float(g)] * 3 for g in range(10)]] * 2  # (A/B, goal, episode)
-    row = dict(agent="walker", true=true, scores={"good": true, "bad": [[[-float(g)] * 3 for g in range(10)]] * 2})
+    row = dict(agent="walker", view="side", true=true, scores={"good": true, "bad": [[[-float(g)] * 3 for g in range(10)]] * 2})
     lines = scorers.table([row]).splitlines()
-    assert lines[2] == "| walker | 1 | good | +1.00 +- 0.00 | +1.00 | +1.00 |" and lines[3].startswith("| walker | 1 | bad | -1.00")
-    assert lines[4].startswith("| walker | 1 | true score (ceiling) | +1.00")
+    assert lines[2] == "| walker | side | 1 | good | +1.00 +- 0.00 | +1.00 | +1.00 |" and lines[3].startswith("| walker | side | 1 | bad | -1.00")
+    assert lines[4].startswith("| walker | side | 1 | true score (ceiling) | +1.00")
 
 
 def test_goal_variance_splits_goal_from_episode_noise():
