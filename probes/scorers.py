@@ -93,13 +93,13 @@ def render_cell(run, demo, view, n_goals, episodes):
     return cfgs["train"].env, path
 
 
-def score_cell(agent, demo, view, path, episodes):
+def score_cell(agent, demo, view, path):
     """The row of a cached cell: every scorer's value of every episode, (2, G, E) as A/B, goal, episode."""
     cache = np.load(path)
     p, demo_p = cache["p"].astype(np.float32), cache["demo_p"].astype(np.float32)
     flat = p.reshape(-1, *p.shape[-2:])
     scores = {name: f(flat, demo_p).reshape(p.shape[:3]).tolist() for name, f in SCORERS.items()}
-    return dict(agent=agent, demo=demo, view=view, episodes=episodes, goals=p.shape[1], true=cache["true"].tolist(), scores=scores)
+    return dict(agent=agent, demo=demo, view=view, episodes=p.shape[2], goals=p.shape[1], true=cache["true"].tolist(), scores=scores)
 
 
 def held_out(scored, true, n=None):
@@ -143,12 +143,12 @@ if __name__ == "__main__":
             if not os.path.exists(path):
                 raise SystemExit(f"error: {path} is not here: render it again with `python probes/scorers.py --run <run> "
                                  f"--demo {r['demo']} --view {r['view']} --out ...`")
-            rundir.append_jsonl(args.out, score_cell(r["agent"], r["demo"], r["view"], path, r["episodes"]))
+            rundir.append_jsonl(args.out, score_cell(r["agent"], r["demo"], r["view"], path))
     elif not (args.run and args.demo and args.out):
         parser.error("pass --run, --demo and --out (or --rescore with --out, or --table)")
     else:
         for demo in args.demo:
             agent, path = render_cell(args.run, demo, args.view, args.goals, args.episodes)
-            row = score_cell(agent, demo, args.view, path, args.episodes)
+            row = score_cell(agent, demo, args.view, path)
             rundir.append_jsonl(args.out, row)
             print(table([row]))
