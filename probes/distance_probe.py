@@ -10,7 +10,19 @@ goals alike):
   gaps (a gait's period, a body at rest) d learns the shortest gap seen, a reachability reading (as IQL's expectile
   value learning, Kostrikov et al. 2022, which HILP uses, Park et al. 2024);
 * `hilbert`: d(s, g) = ||phi(s) - phi(g)|| (HILP's Hilbert representation, Park et al. 2024) with Eq. 7's loss:
-  d(s, s) = 0 and the triangle inequality by construction.
+  d(s, s) = 0 and the triangle inequality by construction;
+* `td`: the same Hilbert d learnt as HILP learns it, not from Eq. 6's labels: a goal-conditioned value V(s, g) = -d
+  fit by temporal differences, an expectile at tau 0.95 of V(s_t, g) <- -(1 + gamma + ... + gamma^(n-1)) +
+  gamma^n V'(s_{t+n}, g) (the sum ends where a goal of the same episode is reached; 0 at s_t's own goal), goals the
+  current frame's (20 %), a later frame of the episode at a geometric gap (50 %) or any frame of D_body (30 %), each as
+  the posterior's or the goal encoder's, V' a slow copy (HILP's settings; ours: n = 10 steps along the data and a slow
+  rate of 0.02 where HILP bootstraps one step at 0.005: at 20000 updates that reading's d had grown to 2 steps at a
+  gap of 100, this one's to 8, with the same rankings). Eq. 7 labels every pair of two episodes 1, so it cannot say
+  that one episode's standing state is near another's standing goal; bootstrapping along the data's transitions can
+  (d in steps, up to 1 / (1 - gamma), times 1 - gamma to read as Eq. 6's units).
+
+Beside the step ranking, each row measures what Eq. 4 needs of d towards the benchmark's stand goals (posture_ranking):
+does -d rank a held-out D_body state by the body's posture (envs.observed_posture: 1 upright at stand height)?
 
     python probes/distance_probe.py --run agents/walker [--readings eq7,expectile] [--updates 3000] [--seed 0] [--out docs/results/distance_probe_walker.jsonl]
     python probes/distance_probe.py --summary docs/results/distance_probe_walker.jsonl
@@ -26,12 +38,13 @@ sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 import checkpoint  # noqa: E402
 import collect  # noqa: E402
 import distance  # noqa: E402
+import envs  # noqa: E402
 import evaluate  # noqa: E402
 import fidelity  # noqa: E402
 import rundir  # noqa: E402
 from world_model import mlp  # noqa: E402
 
-READINGS = {"eq7": {}, "window100": dict(window=100), "expectile": dict(tau=0.1), "hilbert": dict(hilbert=True)}
+READINGS = {"eq7": {}, "window100": dict(window=100), "expectile": dict(tau=0.1), "hilbert": dict(hilbert=True), "td": dict(td=True)}
 
 
 @torch.no_grad()
@@ -53,16 +66,18 @@ class Reading(torch.nn.Module):
 
     def __init__(self, dim, hilbert=False, units=128, layers=4):
         super().__init__()
-        self.hilbert = hilbert
+        self.hilbert, self.scale = hilbert, 1.0  # scale: the td reading's 1 - gamma
         self.net = mlp(dim, units, 64, layers) if hilbert else mlp(2 * dim, units, 1, layers)
 
     def forward(self, a, b):
         a, b = torch.broadcast_tensors(a, b)
-        return (self.net(a) - self.net(b)).norm(dim=-1) if self.hilbert else self.net(torch.cat([a, b], -1)).squeeze(-1)
+        return (self.net(a) - self.net(b)).norm(dim=-1) * self.scale if self.hilbert else self.net(torch.cat([a, b], -1)).squeeze(-1)
 
 
-def fit(x, g, window=50, tau=0.5, hilbert=False, updates=3000, batch=16, pairs=1024, weight=0.1, units=128, seed=0):
+def fit(x, g, window=50, tau=0.5, hilbert=False, td=False, updates=3000, batch=16, pairs=1024, weight=0.1, units=128, seed=0):
     """Eq. 7 (one reading) on windows of `window` steps of (x, g) (E, L, O); tau 0.5 is the squared error."""
+    if td:
+        return fit_td(x, g, updates, batch * pairs // 16, units=units, seed=seed)
     torch.manual_seed(seed)
     rng = torch.Generator().manual_seed(seed)
     d = Reading(x.shape[-1], hilbert, units)
@@ -87,13 +102,66 @@ def fit(x, g, window=50, tau=0.5, hilbert=False, updates=3000, batch=16, pairs=1
     return d
 
 
+def fit_td(x, g, updates, batch, gamma=0.99, tau=0.95, rate=0.02, n=10, shares=(0.2, 0.5, 0.3), units=128, seed=0):
+    """The `td` reading (module docstring) on whole episodes (x, g) (E, L, O): HILP's value learning of a Hilbert d,
+    with n-step targets along the data (a goal of the same episode reached within them ends the sum).
+    Returns d, its steps scaled by 1 - gamma (0 at the goal, -> 1 far from it)."""
+    torch.manual_seed(seed)
+    rng = torch.Generator().manual_seed(seed)
+    d, E, L = Reading(x.shape[-1], hilbert=True, units=units), x.shape[0], x.shape[1]
+    slow = Reading(x.shape[-1], hilbert=True, units=units)
+    slow.load_state_dict(d.state_dict())
+    opt = torch.optim.Adam(d.parameters(), 3e-4)
+    draw = lambda high: torch.randint(high, (batch,), generator=rng)  # noqa: E731
+    for _ in range(updates):
+        e, t = draw(E), draw(L - 1)
+        kind = torch.bucketize(torch.rand(batch, generator=rng), torch.tensor(shares).cumsum(0)[:-1])  # 0 current, 1 later, 2 any
+        gap = torch.distributions.Geometric(torch.tensor(1 - gamma)).sample((batch,)).long() + 1
+        later = torch.minimum(t + gap, torch.tensor(L - 1))
+        goal_e = torch.where(kind == 2, draw(E), e)
+        goal_t = torch.where(kind == 0, t, torch.where(kind == 1, later, draw(L)))
+        goal = torch.where((torch.rand(batch, generator=rng) < 0.5)[:, None], g[goal_e, goal_t], x[goal_e, goal_t])
+        steps = torch.minimum(torch.full_like(t, n), L - 1 - t)  # m steps along the data, then the slow value
+        reached = (kind == 1) & (later - t <= steps)
+        steps = torch.where(reached, later - t, steps)
+        with torch.no_grad():
+            tail = torch.where(reached, 0.0, slow(x[e, t + steps], goal))
+            target = -(1 - gamma**steps) / (1 - gamma) - gamma**steps * tail
+            target = torch.where(kind == 0, 0.0, target)
+        u = target + d(x[e, t], goal)  # target - V(s_t, g), V = -d
+        loss = (torch.where(u < 0, 1 - tau, tau) * u**2).mean()
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+        with torch.no_grad():
+            for p_slow, p in zip(slow.parameters(), d.parameters()):
+                p_slow.lerp_(p, rate)
+    d.scale = 1 - gamma
+    return d
+
+
+@torch.no_grad()
+def posture_ranking(wm, dist, episodes, goals, body):
+    """Does -d towards `goals` (G, F) rank held-out states by the body's posture? On episodes (E of length L): the mean
+    over goals of d(s_t, g) per step, then Spearman(-d, posture) over all steps, and d where the body lies (posture
+    < 0.4) and where it stands (>= 0.8)."""
+    obs, action, is_first = (fidelity.stack(episodes, k, "cpu") for k in (wm.cfg.obs, "action", "is_first"))
+    post, _ = wm.observe(obs, action, is_first, sample=False)
+    feat = wm.feat(post)
+    d = torch.stack([dist(feat, goal.expand_as(feat)) for goal in goals]).mean(0).flatten().numpy()
+    posture = envs.observed_posture(body, obs.numpy()).ravel()
+    return {"rho": round(evaluate.spearman(-d, posture), 3), "lying": round(float(d[posture < 0.4].mean()), 4),
+            "standing": round(float(d[posture >= 0.8].mean()), 4)}
+
+
 def summary(rows, sources=("body", "stand", "walk", "run", "jump")):
     """Per reading, the held-out sources' mean of Spearman(k, d) per episode and per start and of the contrast (d to
     another episode's frame minus d one step ahead), as mean +- s.e. over the fit seeds' rows."""
     by = {}
     for r in rows:
         by.setdefault(r["run"].rsplit(" s", 1)[0], []).append(r["distance"])
-    out = ["| reading | seeds | goal | Spearman per episode | per start | contrast |", "|---|---|---|---|---|---|"]
+    out = ["| reading | seeds | goal | Spearman per episode | per start | contrast | Spearman(-d to stand goals, posture) |",
+           "|---|---|---|---|---|---|---|"]
     first = next(iter(by.values()))
     lines = [(name, fits, kind) for name, fits in by.items() for kind in ("post", "enc")]
     if "obs" in first[0][sources[0]]:  # the observations' own distance, the same for every reading
@@ -103,6 +171,8 @@ def summary(rows, sources=("body", "stand", "walk", "run", "jump")):
         for read in (lambda m: m["rho_episode"], lambda m: m["rho_start"], lambda m: m["other"] - m["d"][0]):
             values = [np.mean([read(f[source][kind]) for source in sources]) for f in fits]
             cells.append(f"{np.mean(values):.2f} +- {evaluate.stderr(values):.2f}")
+        posture = [r["posture"]["rho"] for r in rows if r["run"].rsplit(" s", 1)[0] == name and "posture" in r]
+        cells.append(f"{np.mean(posture):.2f} +- {evaluate.stderr(posture):.2f}" if posture and kind == "enc" else "")
         out.append(f"| {name} | {len(fits)} | {kind} | " + " | ".join(cells) + " |")
     return "\n".join(out)
 
@@ -113,6 +183,7 @@ def main():
     parser.add_argument("--summary", metavar="JSONL", help="instead: each reading over its fit seeds, from this probe's rows")
     parser.add_argument("--readings", default=",".join(READINGS), help=f"comma-separated, of {', '.join(READINGS)}")
     parser.add_argument("--updates", type=int, default=3000)
+    parser.add_argument("--td-updates", type=int, default=20000, help="the td reading's (its values grow by bootstrapping)")
     parser.add_argument("--seed", type=int, default=0, help="of d's initialisation and pairs (the frozen models stay the run's)")
     parser.add_argument("--out", help="append one row per reading (default docs/results/distance_probe_<body>.jsonl)")
     args = parser.parse_args()
@@ -130,12 +201,16 @@ def main():
     body = collect.load_folder(os.path.join(tc.data, tc.env), (wm.cfg.obs, "action", "is_first", "p"))
     x, g = embedded_episodes(models, [e for k, e in enumerate(body) if k % tc.holdout_every])  # the training episodes
     out = args.out or f"docs/results/distance_probe_{tc.env}.jsonl"
+    held_out, stand_goals = fidelity.held_out_episodes(cfgs), evaluate.demo_goals(models, tc.env, "stand", tc.data, 1)
+    print("the run's own d towards the stand goals:", posture_ranking(wm, models["dist_net"], held_out["body"], stand_goals, tc.env), flush=True)
     for name in readings:
-        d = fit(x, g, updates=args.updates, seed=args.seed, **READINGS[name])
+        updates = args.td_updates if name == "td" else args.updates
+        d = fit(x, g, updates=updates, seed=args.seed, **READINGS[name])
         dist = lambda a, b: d(wm.decoder(a), wm.decoder(b))  # noqa: E731  (fidelity.distance_ranking gives posterior features)
         with torch.no_grad():
-            row = {"run": f"{args.run} d:{name} s{args.seed}", "step": args.updates, "distance": {
-                source: fidelity.distance_ranking(wm, models["goal_vae"], dist, eps) for source, eps in fidelity.held_out_episodes(cfgs).items()}}
+            row = {"run": f"{args.run} d:{name} s{args.seed}", "step": updates, "distance": {
+                source: fidelity.distance_ranking(wm, models["goal_vae"], dist, eps) for source, eps in held_out.items()},
+                "posture": posture_ranking(wm, dist, held_out["body"], stand_goals, tc.env)}
         rundir.append_jsonl(out, row)
         print(fidelity.distance_markdown([row]), flush=True)
 

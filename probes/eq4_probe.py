@@ -9,6 +9,10 @@ against this control (`--horizon 15 --starts 256`, the cpu preset's):
 * `--critic-real`: the critic also regressed on lambda-returns along the batch's real posterior sequences, each
   towards a goal sampled as the imagined ones are (DreamerV3's "repval", Hafner et al. 2023): its values are tied to
   states the data holds;
+* `--distance td`: the reward -d of a distance fit first by temporal differences on the frozen world model's reading
+  of D_body (probes/distance_probe.py's `td` reading, HILP's value learning), in place of the run's Eq. 7 network:
+  Eq. 7 labels any two episodes' states 1 apart, so its d towards a demo's stand goal does not tell a standing body
+  from a lying one;
 * another run: the frozen world model of another recipe (e.g. runs/walker_wm_os25_s0, latent overshooting).
 Every `--log-every` updates it prints Eq. 4's imagined reward towards goals the data reached (evaluate.
 reachable_goal_reward: the actor's, with another segment's goal, random actions); at the end the goal-reaching
@@ -30,11 +34,23 @@ import torch
 
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 import checkpoint  # noqa: E402
+import collect  # noqa: E402
 import envs  # noqa: E402
 import evaluate  # noqa: E402
 import policy  # noqa: E402
 import rundir  # noqa: E402
-from probes import imagination_gap  # noqa: E402
+from probes import distance_probe, imagination_gap  # noqa: E402
+
+
+class DecodedDistance(torch.nn.Module):
+    """A distance_probe reading as the run's dist_net is called: d(feat_i, feat_j) on the decoded observations."""
+
+    def __init__(self, reading, decoder):
+        super().__init__()
+        self.reading, self.embed = reading, decoder.forward  # the decoder stays the world model's, not a parameter here
+
+    def forward(self, feat_i, feat_j):
+        return self.reading(self.embed(feat_i), self.embed(feat_j))
 
 
 def real_critic_loss(critic, slow_critic, dist_net, post_feat, goal, cfg):
@@ -88,14 +104,14 @@ def summary(rows):
     """One line per (run, guard): the benchmark average over seeds, mean +- s.e., the gap and the reachable rewards."""
     groups = {}
     for row in rows:
-        groups.setdefault((row["run"], row["horizon"], row["starts"], row["critic_real"], row["updates"]), []).append(row)
-    out = ["| run | horizon | starts | critic on real | updates | seeds | goal reaching | imagined minus real -d | -d own / other / random |",
-           "|---|---|---|---|---|---|---|---|---|"]
-    for (run, horizon, starts, real, updates), group in groups.items():
+        groups.setdefault((row["run"], row.get("distance", "run"), row["horizon"], row["starts"], row["critic_real"], row["updates"]), []).append(row)
+    out = ["| run | d | horizon | starts | critic on real | updates | seeds | goal reaching | imagined minus real -d | -d own / other / random |",
+           "|---|---|---|---|---|---|---|---|---|---|"]
+    for (run, distance, horizon, starts, real, updates), group in groups.items():
         score, gap = [r["average"] for r in group], [r["gap"] for r in group]
         reach = np.mean([r["log"][-1]["reward_reachable"] for r in group], 0)
         se = lambda x: evaluate.stderr(x) if len(x) > 1 else float("nan")
-        out.append(f"| {run} | {horizon} | {starts} | {'yes' if real else 'no'} | {updates} | {len(group)} | {np.mean(score):.1f} +- {se(score):.1f} | "
+        out.append(f"| {run} | {distance} | {horizon} | {starts} | {'yes' if real else 'no'} | {updates} | {len(group)} | {np.mean(score):.1f} +- {se(score):.1f} | "
                    f"{np.mean(gap):.3f} +- {se(gap):.3f} | " + " / ".join(f"{r:.3f}" for r in reach) + " |")
     return out
 
@@ -108,6 +124,9 @@ def main():
     parser.add_argument("--horizon", type=int, default=None, help="imagined steps H (default: the run's)")
     parser.add_argument("--starts", type=int, default=None, help="imagination starts per update (default: the run's)")
     parser.add_argument("--critic-real", action="store_true", help="the critic also fit on real D_body sequences (repval)")
+    parser.add_argument("--distance", choices=("run", "td"), default="run", help="the run's Eq. 7 network, or one fit by "
+                        "temporal differences first (distance_probe's td reading)")
+    parser.add_argument("--distance-updates", type=int, default=20000, help="with --distance td: its fit's updates")
     parser.add_argument("--seed", type=int, default=0, help="of the fresh actor, critic and batches")
     parser.add_argument("--episodes", type=int, default=3, help="benchmark episodes per demo goal (the benchmark's own: 3)")
     parser.add_argument("--eval-steps", type=int, default=envs.EPISODE_STEPS, help="steps of each benchmark episode")
@@ -123,6 +142,12 @@ def main():
     cfgs, models, ckpt = checkpoint.load_run(args.run)
     ac = cfgs["ac"] = dataclasses.replace(cfgs["ac"], horizon=args.horizon or cfgs["ac"].horizon, starts=args.starts or cfgs["ac"].starts)
     _, data, _, _ = checkpoint.prepare_data(cfgs)
+    if args.distance == "td":
+        wm, tc = models["world_model"], cfgs["train"]
+        body = collect.load_folder(os.path.join(tc.data, tc.env), (wm.cfg.obs, "action", "is_first", "p"))
+        x, g = distance_probe.embedded_episodes(models, [e for k, e in enumerate(body) if k % tc.holdout_every])
+        reading = distance_probe.fit(x, g, td=True, updates=args.distance_updates, seed=args.seed).requires_grad_(False)
+        models["dist_net"] = DecodedDistance(reading, wm.decoder)
     log = train_eq4(models, cfgs, data, args.updates, args.critic_real, args.log_every, args.seed)
     scores = evaluate.goal_reaching(models, cfgs, args.episodes, args.eval_steps, envs.BODY_TASKS)
     print("\n".join(evaluate.summary(scores)))
@@ -130,6 +155,7 @@ def main():
     gap = float(np.concatenate(gaps).mean())
     print(f"imagined minus real -d on the benchmark's episodes: {gap:.3f}")
     row = {"run": args.run, "weights_id": rundir.weights_id(ckpt), "horizon": ac.horizon, "starts": ac.starts, "critic_real": args.critic_real,
+           "distance": args.distance,
            "updates": args.updates, "seed": args.seed, "episodes": args.episodes, "gap": gap, "log": log,
            "scores": {t: float(np.mean(s["policy"])) for t, s in scores.items()},
            "average": float(np.mean([np.mean(s["policy"]) for s in scores.values()]))}

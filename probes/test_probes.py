@@ -283,6 +283,21 @@ def test_distance_probe_readings_on_a_body_at_rest_and_one_that_moves():
     assert moving[0] == 0.0 and moving[0] < moving[1] < moving[2], moving
 
 
+def test_distance_probe_td_reading_ranks_another_episodes_goal_by_the_steps_to_it():
+    """Episodes that move along one line from different starting points: a state of one episode is never paired with
+    another's by Eq. 6, and Eq. 7 labels every such pair 1. The td reading bootstraps along the transitions, so from
+    episode 3 the distance to a frame of episode 0 rises with the steps between their positions, and is 0 at itself."""
+    probe = probe_script("distance_probe")
+    L = 40
+    x = (torch.arange(8.0)[:, None] * 0.5 + torch.linspace(0, 3, L))[..., None]  # (E, L, 1): episode e from 0.5 e
+    d = probe.fit_td(x, x, updates=400, batch=256, units=32)
+    goal = x[0, 35]  # position 2.69; episode 3 passes it at step 15
+    with torch.no_grad():
+        rising = [d(x[3, t], goal).item() for t in (13, 9, 5, 1)]
+        assert d(goal, goal).item() == 0.0
+    assert rising == sorted(rising) and rising[-1] > rising[0] + 0.02, rising
+
+
 def test_eq4_probe_critic_on_real_sequences_regresses_to_the_lambda_returns():
     """probes/eq4_probe.py's repval: with d = 1 everywhere and a slow critic of 0, a 3-step real segment's returns are
     G_1 = -1, G_0 = -1 - gamma lambda (G_2 = v_2 = 0), and a critic of 0 has the loss 0.5 mean(G^2)."""
