@@ -76,14 +76,18 @@ def build_models(cfgs, obs_shape, action_dim, p_dim, device):
     wm = world_model.WorldModel(cfgs["wm"], obs_shape, action_dim)
     if cfgs["dist"].input == "obs" and cfgs["wm"].obs != "state":
         raise ValueError("--dist-input obs reads decoded state vectors: with --obs pixels pass --dist-input feat")
+    make_dist = lambda: distance.DistanceNet(cfgs["dist"], wm.feat_dim, wm.decoder if cfgs["dist"].input == "obs" else None)  # noqa: E731
     models = {
         "world_model": wm,
         "goal_vae": goal_vae.GoalVAE(cfgs["goal"], p_dim, cfgs["wm"].deter, wm.latent),
-        "dist_net": distance.DistanceNet(cfgs["dist"], wm.feat_dim, wm.decoder if cfgs["dist"].input == "obs" else None),
+        "dist_net": make_dist(),
         "actor": policy.Actor(cfgs["ac"], wm.feat_dim, wm.feat_dim, action_dim),
         "return_norm": policy.ReturnNorm(cfgs["ac"].return_norm_decay),
     }
     models["critic"], models["slow_critic"] = policy.make_critics(cfgs["ac"], wm.feat_dim, wm.feat_dim)
+    if cfgs["dist"].reading == "td":  # the slow copy of d that computes its targets (distance.td_loss)
+        models["slow_dist"] = make_dist().requires_grad_(False)
+        models["slow_dist"].load_state_dict(models["dist_net"].state_dict())
     return {k: m.to(device) for k, m in models.items()}
 
 

@@ -33,26 +33,51 @@ every near goal looked reached from the first step and -d did not change with wh
 embedding of the observation; `input = "obs"` does the same with the world model's own decoder: d reads the decoded
 observation (symlog of the state vector) of s and of g, which holds the body's pose and velocities and no history.
 Measured, it ranked gaps no better than [h, z] (docs/ablations.md, Phase 1). `input = "feat"` is Eq. 7 as written.
+
+The td reading (ours, `reading = "td"`; Park et al. 2024, HILP). Eq. 7 labels every pair of states of two episodes 1,
+so d towards a demo's goal, always another episode's state, says "not this episode" and little of how far: measured on
+the shipped stickman, -d towards its stand demos' goals ranks held-out D_body states by the body's posture at Spearman
+0.11, a lying body and a standing one alike at ~0.7-0.8 (probes/distance_probe.py). The td reading makes d a metric,
+d(s, g) = (1 - gamma) ||phi(s) - phi(g)||, and fits V(s, g) = -d / (1 - gamma), the discounted steps from s to g, by
+temporal differences along the data, as a goal-conditioned value: V(s_t, g) <- -(1 + gamma + ... + gamma^(n-1)) +
+gamma^n V'(s_{t+n}, g), an expectile at tau (optimistic: the shortest way the data shows), with the sum ending where a
+goal of the same episode is met, V = 0 at s_t's own frame's goal, and V' a slow copy (`slow_dist`). Goals are the
+current frame's, a later frame of the segment at a geometric gap, or any frame of the batch (GOAL_SHARES), each as the
+posterior's or the goal encoder's (encoder_goals). Bootstrapping through states that look alike stitches episodes
+together, so a standing state of one episode is near a standing goal of another.
 """
 from dataclasses import dataclass
 from typing import ClassVar
+
+import math
 
 import torch
 import torch.nn as nn
 
 from world_model import mlp
 
+PHI_DIM = 64  # td: phi's output (ours, as the probe's; HILP: 32)
+GOAL_SHARES = (0.2, 0.5, 0.3)  # td: goals the current frame's, a later one of its episode, any frame of the batch (HILP's)
+
 
 @dataclass
 class DistanceConfig:
     # rundir.check_flags: the values a field may take where not a count (>= 1), a learning rate in (0, 1) or a float >= 0
-    ranges: ClassVar[dict] = {"encoder_goals": (0, 1), "grad_clip": "> 0"}
+    choices: ClassVar[dict] = {"input": ("obs", "feat"), "reading": ("eq7", "td")}  # train.py's flags accept these alone
+    ranges: ClassVar[dict] = {"encoder_goals": (0, 1), "grad_clip": "> 0", "gamma": (0, 1), "tau": (0, 1), "slow_rate": (0, 1)}
     units: int = 128  # LEXA: 4 x 128 MLP
     layers: int = 4  # LEXA
     pairs: int = 1024  # candidate pairs of each kind (same / different trajectory) per batch (ours)
     contrastive_weight: float = 0.1  # weight of Eq. 7's contrastive term (LEXA's 10% negatives ~ 0.11; Eq. 7: 1, equal weights)
     encoder_goals: int = 1  # 1: also fit d(s_i, g_j) with g_j the goal encoder's goal of frame j (ours); 0: Eq. 7 alone
     input: str = "obs"  # 'obs': d on decoded observations (ours, LEXA's embedding; state obs only); 'feat': on [h, z] (Eq. 7)
+    # 'eq7': Eq. 6-7's regression and contrastive terms (the paper); 'td': d = ||phi(s) - phi(g)|| fit by temporal
+    # differences along the data (HILP, Park et al. 2024; module docstring), whose -d ranks another episode's states
+    reading: str = "eq7"
+    gamma: float = 0.99  # td: discount of the steps counted (HILP)
+    tau: float = 0.95  # td: expectile of the value targets (HILP)
+    td_n: int = 10  # td: steps along the data before bootstrapping (ours; HILP: 1)
+    slow_rate: float = 0.02  # td: EMA rate of the slow copy that computes the targets (ours; HILP: 0.005)
     lr: float = 3e-4  # Adam (ours: the usual rate for a small MLP)
     grad_clip: float = 100.0  # global gradient norm, as the world model (Dreamer V1)
 
@@ -66,12 +91,15 @@ class DistanceNet(nn.Module):
         super().__init__()
         self.cfg, self.feat_dim = cfg, feat_dim
         assert cfg.input in ("feat", "obs") and (cfg.input == "feat" or decoder is not None), (cfg.input, decoder)
+        assert cfg.reading in ("eq7", "td"), cfg.reading
         self.embed = decoder.forward if cfg.input == "obs" else (lambda feat: feat)
         in_dim = decoder[-1].out_features if cfg.input == "obs" else feat_dim
-        self.net = mlp(2 * in_dim, cfg.units, 1, cfg.layers)
+        self.net = mlp(in_dim, cfg.units, PHI_DIM, cfg.layers) if cfg.reading == "td" else mlp(2 * in_dim, cfg.units, 1, cfg.layers)
 
     def distance(self, x_i, x_j):
-        """d on embedded inputs: x_i, x_j (..., E) -> (...)."""
+        """d on embedded inputs: x_i, x_j (..., E) -> (...). td: ||phi(x_i) - phi(x_j)|| steps, times 1 - gamma."""
+        if self.cfg.reading == "td":
+            return (self.net(x_i) - self.net(x_j)).norm(dim=-1) * (1 - self.cfg.gamma)
         return self.net(torch.cat([x_i, x_j], -1)).squeeze(-1)
 
     def forward(self, feat_i, feat_j):
@@ -121,6 +149,38 @@ def distance_loss(dist_net, feat, pairs, horizon_T, contrastive_weight=1.0, goal
                         f"dist_pos{name}": d_pos.mean().item(), f"dist_neg{name}": d_neg.mean().item() if len(d_neg) else float("nan")})
     metrics["dist_loss"] = loss.item()
     return loss, metrics
+
+
+def td_loss(dist_net, slow_net, x, goals, is_first, num, generator=None):
+    """The td reading's loss (module docstring; HILP's value learning), in place of Eq. 7: x (B, T, E) embedded states,
+    goals a list of (B, T, E) embedded goals of the same frames (the posterior's, the goal encoder's), is_first (B, T),
+    num steps drawn -> (loss, metrics). V(s, g) = -d / (1 - gamma) in steps; slow_net the slow copy for the targets."""
+    cfg, (B, T, _) = dist_net.cfg, x.shape
+    draw = lambda high: torch.randint(high, (num,), generator=generator).to(x.device)  # noqa: E731
+    index = torch.arange(T, device=x.device).expand(B, T)
+    start_after = torch.where(is_first, index, T).flip(1).cummin(1).values.flip(1)  # (B, T): the first episode start at or after t
+    end = torch.cat([start_after[:, 1:], torch.full_like(start_after[:, :1], T)], 1) - 1  # the last step of t's episode in its segment
+    b, t = draw(B), draw(T)
+    keep = t < end[b, t]  # a step after t to bootstrap from
+    b, t, end = b[keep], t[keep], end[b[keep], t[keep]]
+    n = len(b)
+    kind = torch.bucketize(torch.rand(n, generator=generator), torch.tensor(GOAL_SHARES).cumsum(0)[:-1]).to(x.device)  # 0 current, 1 later, 2 any
+    gap = (torch.log(torch.rand(n, generator=generator)) / math.log(cfg.gamma)).floor().long().to(x.device) + 1  # geometric, mean 1 / (1 - gamma)
+    later = torch.minimum(t + gap, end)
+    goal_b, goal_t = torch.where(kind == 2, draw(B)[:n], b), torch.where(kind == 0, t, torch.where(kind == 1, later, draw(T)[:n]))
+    which = torch.randint(len(goals), (n,), generator=generator).to(x.device)
+    goal = torch.stack([g[goal_b, goal_t] for g in goals])[which, torch.arange(n, device=x.device)]
+    steps = torch.minimum(torch.full_like(t, cfg.td_n), end - t)  # along the data, then the slow value
+    reached = (kind == 1) & (later - t <= steps)  # a goal of the same episode met within them ends the sum
+    steps = torch.where(reached, later - t, steps)
+    scale = 1 - cfg.gamma
+    with torch.no_grad():
+        tail = torch.where(reached, 0.0, slow_net.distance(x[b, t + steps], goal) / scale)
+        target = torch.where(kind == 0, 0.0, -(1 - cfg.gamma**steps) / scale - cfg.gamma**steps * tail)
+    value = -dist_net.distance(x[b, t], goal) / scale
+    u = target - value
+    loss = (torch.where(u < 0, 1 - cfg.tau, cfg.tau) * u**2).mean()
+    return loss, {"dist_loss": loss.item(), "dist_value": value.mean().item()}
 
 
 @torch.no_grad()

@@ -11,15 +11,11 @@ goals alike):
   value learning, Kostrikov et al. 2022, which HILP uses, Park et al. 2024);
 * `hilbert`: d(s, g) = ||phi(s) - phi(g)|| (HILP's Hilbert representation, Park et al. 2024) with Eq. 7's loss:
   d(s, s) = 0 and the triangle inequality by construction;
-* `td`: the same Hilbert d learnt as HILP learns it, not from Eq. 6's labels: a goal-conditioned value V(s, g) = -d
-  fit by temporal differences, an expectile at tau 0.95 of V(s_t, g) <- -(1 + gamma + ... + gamma^(n-1)) +
-  gamma^n V'(s_{t+n}, g) (the sum ends where a goal of the same episode is reached; 0 at s_t's own goal), goals the
-  current frame's (20 %), a later frame of the episode at a geometric gap (50 %) or any frame of D_body (30 %), each as
-  the posterior's or the goal encoder's, V' a slow copy (HILP's settings; ours: n = 10 steps along the data and a slow
-  rate of 0.02 where HILP bootstraps one step at 0.005: at 20000 updates that reading's d had grown to 2 steps at a
-  gap of 100, this one's to 8, with the same rankings). Eq. 7 labels every pair of two episodes 1, so it cannot say
-  that one episode's standing state is near another's standing goal; bootstrapping along the data's transitions can
-  (d in steps, up to 1 / (1 - gamma), times 1 - gamma to read as Eq. 6's units).
+* `td`: the same Hilbert d learnt as HILP learns it, not from Eq. 6's labels (distance.td_loss, train.py's
+  `--dist-reading td`; distance.py's docstring): a goal-conditioned value V = -d fit by temporal differences along the
+  data, here on whole episodes, goals of the same episode at a geometric gap or of any episode. Ours against HILP's
+  settings: n = 10 steps along the data before bootstrapping and a slow rate of 0.02 where HILP bootstraps one step at
+  0.005: at 20000 updates that reading's d had grown to 2 steps at a gap of 100, this one's to 8, ranking alike.
 
 Beside the step ranking, each row measures what Eq. 4 needs of d towards the benchmark's stand goals (posture_ranking):
 does -d rank a held-out D_body state by the body's posture (envs.observed_posture: 1 upright at stand height)?
@@ -41,6 +37,7 @@ import distance  # noqa: E402
 import envs  # noqa: E402
 import evaluate  # noqa: E402
 import fidelity  # noqa: E402
+import policy  # noqa: E402
 import rundir  # noqa: E402
 from world_model import mlp  # noqa: E402
 
@@ -66,12 +63,12 @@ class Reading(torch.nn.Module):
 
     def __init__(self, dim, hilbert=False, units=128, layers=4):
         super().__init__()
-        self.hilbert, self.scale = hilbert, 1.0  # scale: the td reading's 1 - gamma
+        self.hilbert = hilbert
         self.net = mlp(dim, units, 64, layers) if hilbert else mlp(2 * dim, units, 1, layers)
 
     def forward(self, a, b):
         a, b = torch.broadcast_tensors(a, b)
-        return (self.net(a) - self.net(b)).norm(dim=-1) * self.scale if self.hilbert else self.net(torch.cat([a, b], -1)).squeeze(-1)
+        return (self.net(a) - self.net(b)).norm(dim=-1) if self.hilbert else self.net(torch.cat([a, b], -1)).squeeze(-1)
 
 
 def fit(x, g, window=50, tau=0.5, hilbert=False, td=False, updates=3000, batch=16, pairs=1024, weight=0.1, units=128, seed=0):
@@ -102,41 +99,22 @@ def fit(x, g, window=50, tau=0.5, hilbert=False, td=False, updates=3000, batch=1
     return d
 
 
-def fit_td(x, g, updates, batch, gamma=0.99, tau=0.95, rate=0.02, n=10, shares=(0.2, 0.5, 0.3), units=128, seed=0):
-    """The `td` reading (module docstring) on whole episodes (x, g) (E, L, O): HILP's value learning of a Hilbert d,
-    with n-step targets along the data (a goal of the same episode reached within them ends the sum).
-    Returns d, its steps scaled by 1 - gamma (0 at the goal, -> 1 far from it)."""
+def fit_td(x, g, updates, batch, units=128, seed=0):
+    """The `td` reading (module docstring) on whole episodes (x, g) (E, L, O): distance.td_loss, as train.py fits it
+    with --dist-reading td, here on the frozen models' reading of D_body. Returns the distance.DistanceNet."""
     torch.manual_seed(seed)
     rng = torch.Generator().manual_seed(seed)
-    d, E, L = Reading(x.shape[-1], hilbert=True, units=units), x.shape[0], x.shape[1]
-    slow = Reading(x.shape[-1], hilbert=True, units=units)
+    cfg = distance.DistanceConfig(units=units, input="feat", reading="td")  # input: x and g come embedded already
+    d, slow = (distance.DistanceNet(cfg, x.shape[-1]) for _ in range(2))
     slow.load_state_dict(d.state_dict())
-    opt = torch.optim.Adam(d.parameters(), 3e-4)
-    draw = lambda high: torch.randint(high, (batch,), generator=rng)  # noqa: E731
+    opt = torch.optim.Adam(d.parameters(), cfg.lr)
+    is_first = torch.zeros(x.shape[:2], dtype=torch.bool)
     for _ in range(updates):
-        e, t = draw(E), draw(L - 1)
-        kind = torch.bucketize(torch.rand(batch, generator=rng), torch.tensor(shares).cumsum(0)[:-1])  # 0 current, 1 later, 2 any
-        gap = torch.distributions.Geometric(torch.tensor(1 - gamma)).sample((batch,)).long() + 1
-        later = torch.minimum(t + gap, torch.tensor(L - 1))
-        goal_e = torch.where(kind == 2, draw(E), e)
-        goal_t = torch.where(kind == 0, t, torch.where(kind == 1, later, draw(L)))
-        goal = torch.where((torch.rand(batch, generator=rng) < 0.5)[:, None], g[goal_e, goal_t], x[goal_e, goal_t])
-        steps = torch.minimum(torch.full_like(t, n), L - 1 - t)  # m steps along the data, then the slow value
-        reached = (kind == 1) & (later - t <= steps)
-        steps = torch.where(reached, later - t, steps)
-        with torch.no_grad():
-            tail = torch.where(reached, 0.0, slow(x[e, t + steps], goal))
-            target = -(1 - gamma**steps) / (1 - gamma) - gamma**steps * tail
-            target = torch.where(kind == 0, 0.0, target)
-        u = target + d(x[e, t], goal)  # target - V(s_t, g), V = -d
-        loss = (torch.where(u < 0, 1 - tau, tau) * u**2).mean()
+        loss, _ = distance.td_loss(d, slow, x, [g, x], is_first, batch, rng)
         opt.zero_grad()
         loss.backward()
         opt.step()
-        with torch.no_grad():
-            for p_slow, p in zip(slow.parameters(), d.parameters()):
-                p_slow.lerp_(p, rate)
-    d.scale = 1 - gamma
+        policy.ema_update(slow, d, cfg.slow_rate)
     return d
 
 

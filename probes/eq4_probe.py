@@ -110,9 +110,9 @@ def summary(rows):
     for (run, distance, horizon, starts, real, updates), group in groups.items():
         score, gap = [r["average"] for r in group], [r["gap"] for r in group]
         reach = np.mean([r["log"][-1]["reward_reachable"] for r in group], 0)
-        se = lambda x: evaluate.stderr(x) if len(x) > 1 else float("nan")
-        out.append(f"| {run} | {distance} | {horizon} | {starts} | {'yes' if real else 'no'} | {updates} | {len(group)} | {np.mean(score):.1f} +- {se(score):.1f} | "
-                   f"{np.mean(gap):.3f} +- {se(gap):.3f} | " + " / ".join(f"{r:.3f}" for r in reach) + " |")
+        cell = lambda x, digits: f"{np.mean(x):.{digits}f}" + (f" +- {evaluate.stderr(x):.{digits}f}" if len(x) > 1 else "")  # noqa: E731
+        out.append(f"| {run} | {distance} | {horizon} | {starts} | {'yes' if real else 'no'} | {updates} | {len(group)} | {cell(score, 1)} | "
+                   f"{cell(gap, 3)} | " + " / ".join(f"{r:.3f}" for r in reach) + " |")
     return out
 
 

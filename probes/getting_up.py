@@ -13,11 +13,16 @@ Four readings:
 * with --other-goals, each task also towards the goals of the other tasks' demos (does the goal decide the task,
   and does a stand goal get it up as often as a walk goal), and the posture the world model reads in each goal;
 * with --data-goals, does the goal decide whether it gets up: the stand task with goals q(s | p_T) of D_body stand
-  episodes that ended up, then of those that ended down (the first 30 of each by name, the benchmark's seeds).
+  episodes that ended up, then of those that ended down (the first 30 of each by name, the benchmark's seeds);
+* with --imagined, does the world model imagine getting up: on the fidelity benchmark's D_body episodes (held-out and
+  as many training ones), each getting-up event (posture < 0.3 for 10 steps, then >= UP within 60) replayed open loop
+  from 15 and from 40 steps before it with the data's own actions (world_model.replay), the decoded posture against
+  the real one; what Eq. 4's actor can learn of getting up is what this imagination holds.
 Run from the repository root:
 
     python probes/getting_up.py agents/stickman --data-too --data-goals
     python probes/getting_up.py agents/stickman --other-goals --data-too --data data/late
+    python probes/getting_up.py agents/walker --imagined
 """
 import argparse
 import glob
@@ -32,6 +37,7 @@ import checkpoint  # noqa: E402
 import collect  # noqa: E402
 import envs  # noqa: E402
 import evaluate  # noqa: E402
+import fidelity  # noqa: E402
 import rundir  # noqa: E402
 
 LAST, UP = 100, 0.8  # "up at the end": mean posture over the last LAST steps >= UP
@@ -112,12 +118,49 @@ def data_goal_rows(models, cfgs, folder, body):
         yield agent_row(name, models, cfgs, body, "stand", p_goals)
 
 
+def getting_up_events(posture, before, after=20):
+    """(episode, step) of each getting-up event (--imagined) in posture (E, L) with `before` steps before it and
+    `after` after it in the episode; one per 100 steps at most."""
+    events = []
+    for e, p in enumerate(posture):
+        t = max(10, before)
+        while t < len(p) - after:
+            up = np.flatnonzero(p[t : t + 60] >= UP) if (p[t - 10 : t] < 0.3).all() else []
+            if len(up) and t + up[0] + after < len(p):
+                events.append((e, t + up[0]))
+                t += up[0] + 100
+            else:
+                t += 1
+    return events
+
+
+@torch.no_grad()
+def imagined_rows(models, cfgs, body, befores=(15, 40), after=20):
+    """--imagined (module docstring): per `before`, the mean real, filtered and imagined posture at the event's start,
+    at the event, `after` steps after it, and the share of events whose posture reaches UP from 10 steps before it."""
+    wm, sources = models["world_model"], fidelity.held_out_episodes(cfgs)
+    obs, action, is_first = (fidelity.stack(sources["body"] + sources["body_train"], k, "cpu") for k in (wm.cfg.obs, "action", "is_first"))
+    posture, post = envs.observed_posture(body, obs.numpy()), wm.observe(obs, action, is_first, sample=False)[0]
+    filtered = envs.observed_posture(body, wm.decode(wm.feat(post)).numpy())
+    for before in befores:
+        e, t = (torch.tensor(v) for v in zip(*getting_up_events(posture, before, after)))
+        index = (t - before)[:, None] + torch.arange(1, before + after + 1)  # (N, before + after): the steps replayed
+        imagined = wm.replay({k: v[e, t - before] for k, v in post.items()}, action[e[:, None], index])
+        kinds = {"real": posture[e[:, None], index], "filtered posterior": filtered[e[:, None], index],
+                 "imagined, open loop": envs.observed_posture(body, wm.decode(imagined).numpy())}
+        for name, p in kinds.items():
+            gets_up = (p[:, before - 10 :] >= UP).any(1).mean()
+            yield (f"| {before} steps before | {name} | {len(e)} | {p[:, 0].mean():.2f} | {p[:, before - 1].mean():.2f} | "
+                   f"{p[:, -1].mean():.2f} | {gets_up:.2f} |")
+
+
 def main():
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("run", help="a run or agent folder, e.g. agents/stickman")
     parser.add_argument("--data-too", action="store_true", help="also the D_body task episodes of the run's data folder")
     parser.add_argument("--data-goals", action="store_true", help="also stand towards goals of D_body episodes that ended up / down")
     parser.add_argument("--other-goals", action="store_true", help="also each task towards the other tasks' demo goals")
+    parser.add_argument("--imagined", action="store_true", help="instead: does the world model imagine D_body's getting-up events")
     parser.add_argument("--data", help="the data folder of D_body and the demos (default: the run's)")
     args = parser.parse_args()
     torch.set_num_threads(checkpoint.TrainConfig.threads)  # the benchmark's threads and matmul route (train.py --evaluate):
@@ -125,6 +168,10 @@ def main():
     cfgs, models, _ = checkpoint.load_run(args.run)
     cfgs["train"].data = args.data or cfgs["train"].data
     body = cfgs["train"].env
+    if args.imagined:
+        print(f"| {args.run}: replayed from | posture | events | at the start | at the event | 20 steps after | share up |\n|---|---|---|---|---|---|---|")
+        print("\n".join(imagined_rows(models, cfgs, body)))
+        return
     goals = demo_goals(cfgs, body)
     header = "| posture | up at the end | score of those up | score of those down | all |\n|---|---|---|---|---|---|"
     print(f"| {args.run} (benchmark episodes) {header}")

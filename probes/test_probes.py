@@ -64,6 +64,18 @@ def test_getting_up_landing_times_the_fall_of_episodes_that_end_up():
     assert getting_up.landing([fall(5, 15), fall(9, 30), fall(11, 40), down]) == (3, 9.0, 30.0)
 
 
+def test_getting_up_events_are_a_lying_spell_then_up_within_60_steps():
+    """probes/getting_up.py --imagined: an event is the first step at posture >= 0.8 after 10 steps below 0.3, within
+    60 of them, with `before` steps before it and 20 after it in the episode; a body that rises too slowly, or too near
+    the episode's end, makes none."""
+    getting_up = probe_script("getting_up")
+    rise = lambda down: np.concatenate([np.full(down, 0.1), np.ones(200 - down)])  # noqa: E731
+    slow = np.concatenate([np.full(50, 0.1), np.full(80, 0.5), np.ones(70)])  # 80 steps half up: over 60
+    posture = np.stack([rise(50), rise(190), slow, np.full(200, 0.1)])  # up at 190: 20 steps after it are not there
+    assert getting_up.getting_up_events(posture, before=15) == [(0, 50)]
+    assert getting_up.getting_up_events(posture, before=60) == []  # 50 steps down is less than 60 before
+
+
 def test_imagination_gap_is_zero_when_reality_follows_imagination(smoke_run):
     """probes/imagination_gap.py: read as real steps, the imagined states give the imagined reading (both -d(s_k, g) on
     arrival, k = 1 .. H); run_episodes hands over one posterior state per step, t = 0 .. steps."""
