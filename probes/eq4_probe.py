@@ -10,9 +10,8 @@ against this control (`--horizon 15 --starts 256`, the cpu preset's):
   towards a goal sampled as the imagined ones are (DreamerV3's "repval", Hafner et al. 2023): its values are tied to
   states the data holds;
 * `--distance td`: the reward -d of a distance fit first by temporal differences on the frozen world model's reading
-  of D_body (probes/distance_probe.py's `td` reading, HILP's value learning), in place of the run's Eq. 7 network:
-  Eq. 7 labels any two episodes' states 1 apart, so its d towards a demo's stand goal does not tell a standing body
-  from a lying one;
+  of D_body (probes/distance_probe.py's `td` reading, HILP's value learning), in place of the run's Eq. 7 network;
+  `--distance eq7` its control, Eq. 7 fit afresh the same way (a fresh fit on the final world model, not the reading);
 * another run: the frozen world model of another recipe (e.g. runs/walker_wm_os25_s0, latent overshooting).
 Every `--log-every` updates it prints Eq. 4's imagined reward towards goals the data reached (evaluate.
 reachable_goal_reward: the actor's, with another segment's goal, random actions); at the end the goal-reaching
@@ -124,9 +123,10 @@ def main():
     parser.add_argument("--horizon", type=int, default=None, help="imagined steps H (default: the run's)")
     parser.add_argument("--starts", type=int, default=None, help="imagination starts per update (default: the run's)")
     parser.add_argument("--critic-real", action="store_true", help="the critic also fit on real D_body sequences (repval)")
-    parser.add_argument("--distance", choices=("run", "td"), default="run", help="the run's Eq. 7 network, or one fit by "
-                        "temporal differences first (distance_probe's td reading)")
-    parser.add_argument("--distance-updates", type=int, default=20000, help="with --distance td: its fit's updates")
+    parser.add_argument("--distance", choices=("run", "eq7", "td"), default="run", help="the run's Eq. 7 network, or one fit "
+                        "first on the frozen world model: Eq. 7 as train.py fits it, or by temporal differences (distance_probe's readings)")
+    parser.add_argument("--distance-updates", type=int, help="with --distance eq7 / td: its fit's updates (default 3000 / 20000, "
+                        "distance_probe's)")
     parser.add_argument("--seed", type=int, default=0, help="of the fresh actor, critic and batches")
     parser.add_argument("--episodes", type=int, default=3, help="benchmark episodes per demo goal (the benchmark's own: 3)")
     parser.add_argument("--eval-steps", type=int, default=envs.EPISODE_STEPS, help="steps of each benchmark episode")
@@ -142,11 +142,12 @@ def main():
     cfgs, models, ckpt = checkpoint.load_run(args.run)
     ac = cfgs["ac"] = dataclasses.replace(cfgs["ac"], horizon=args.horizon or cfgs["ac"].horizon, starts=args.starts or cfgs["ac"].starts)
     _, data, _, _ = checkpoint.prepare_data(cfgs)
-    if args.distance == "td":
+    if args.distance != "run":
         wm, tc = models["world_model"], cfgs["train"]
         body = collect.load_folder(os.path.join(tc.data, tc.env), (wm.cfg.obs, "action", "is_first", "p"))
         x, g = distance_probe.embedded_episodes(models, [e for k, e in enumerate(body) if k % tc.holdout_every])
-        reading = distance_probe.fit(x, g, td=True, updates=args.distance_updates, seed=args.seed).requires_grad_(False)
+        updates = args.distance_updates or (20000 if args.distance == "td" else 3000)
+        reading = distance_probe.fit(x, g, updates=updates, seed=args.seed, **distance_probe.READINGS[args.distance]).requires_grad_(False)
         models["dist_net"] = DecodedDistance(reading, wm.decoder)
     log = train_eq4(models, cfgs, data, args.updates, args.critic_real, args.log_every, args.seed)
     scores = evaluate.goal_reaching(models, cfgs, args.episodes, args.eval_steps, envs.BODY_TASKS)

@@ -326,13 +326,14 @@ def test_eq4_probe_trains_a_fresh_actor_and_leaves_the_world_model_frozen(smoke_
     before = open(os.path.join(smoke_run, "checkpoint.pt"), "rb").read()
     out = str(tmp_path / "rows.jsonl")
     result = subprocess.run([sys.executable, "probes/eq4_probe.py", smoke_run, "--updates", "2", "--log-every", "1", "--horizon", "3",
-                             "--starts", "16", "--critic-real", "--episodes", "1", "--eval-steps", "10", "--out", out],
+                             "--starts", "16", "--critic-real", "--distance", "td", "--distance-updates", "2", "--episodes", "1",
+                             "--eval-steps", "10", "--out", out],
                             cwd=ROOT, capture_output=True, text=True, env={**os.environ, "MUJOCO_GL": "egl"})
     assert result.returncode == 0, result.stderr[-2000:]
     row = json.loads(open(out).read())
-    assert (row["horizon"], row["starts"], row["critic_real"], row["updates"]) == (3, 16, True, 2)
+    assert (row["horizon"], row["starts"], row["critic_real"], row["distance"], row["updates"]) == (3, 16, True, "td", 2)
     assert [r["step"] for r in row["log"]] == [1, 2] and len(row["log"][0]["reward_reachable"]) == 3
     assert set(row["scores"]) == {"stand", "walk", "run"} and np.isfinite(row["gap"])
     assert open(os.path.join(smoke_run, "checkpoint.pt"), "rb").read() == before
     summary = subprocess.run([sys.executable, "probes/eq4_probe.py", "--summary", out], cwd=ROOT, capture_output=True, text=True)
-    assert f"| {smoke_run} | 3 | 16 | yes | 2 | 1 | {row['average']:.1f} +- nan |" in summary.stdout
+    assert f"| {smoke_run} | td | 3 | 16 | yes | 2 | 1 | {row['average']:.1f} | {row['gap']:.3f} |" in summary.stdout
