@@ -1,4 +1,4 @@
-"""Eq. 6-7 and App. B: the temporal distance network d(s_i, s_j) and its regression + contrastive loss.
+"""Eq. 6-7 and App. B: the temporal distance network d(s_i, s_j), its regression + contrastive loss; our td reading.
 
 Eq. 6, D^dis(s_i, s_j) = (j - i) / T for j > i in one trajectory. T is "the maximum trajectory horizon"; pairs
 are drawn inside a training segment, so the longest horizon a pair spans is the segment length, and that is the
@@ -35,21 +35,20 @@ observation (symlog of the state vector) of s and of g, which holds the body's p
 Measured, it ranked gaps no better than [h, z] (docs/ablations.md, Phase 1). `input = "feat"` is Eq. 7 as written.
 
 The td reading (ours, `reading = "td"`; Park et al. 2024, HILP). Eq. 7 labels every pair of states of two episodes 1,
-so d towards a demo's goal, always another episode's state, says "not this episode" and little of how far: measured on
-the shipped stickman, -d towards its stand demos' goals ranks held-out D_body states by the body's posture at Spearman
-0.11, a lying body and a standing one alike at ~0.7-0.8 (probes/distance_probe.py). The td reading makes d a metric,
-d(s, g) = (1 - gamma) ||phi(s) - phi(g)||, and fits V(s, g) = -d / (1 - gamma), the discounted steps from s to g, by
-temporal differences along the data, as a goal-conditioned value: V(s_t, g) <- -(1 + gamma + ... + gamma^(n-1)) +
-gamma^n V'(s_{t+n}, g), an expectile at tau (optimistic: the shortest way the data shows), with the sum ending where a
-goal of the same episode is met, V = 0 at s_t's own frame's goal, and V' a slow copy (`slow_dist`). Goals are the
-current frame's, a later frame of the segment at a geometric gap, or any frame of the batch (GOAL_SHARES), each as the
-posterior's or the goal encoder's (encoder_goals). Bootstrapping through states that look alike stitches episodes
-together, so a standing state of one episode is near a standing goal of another.
+so d towards a demo's goal, always another episode's state, can only say "not this episode" unless the network
+generalises. The td reading makes d a metric, d(s, g) = (1 - gamma) ||phi(s) - phi(g)||, and fits V(s, g) =
+-d / (1 - gamma), the discounted steps from s to g, by temporal differences along the data, as a goal-conditioned
+value: V(s_t, g) <- -(1 + gamma + ... + gamma^(n-1)) + gamma^n V'(s_{t+n}, g), an expectile at tau (optimistic: the
+shortest way the data shows), the sum ending where a goal of the same episode is met, V = 0 at s_t's own frame's goal,
+V' a slow copy (`slow_dist`). Goals are the current frame's, a later frame of the segment at a geometric gap, or any
+frame of the batch (GOAL_SHARES), each as the posterior's or the goal encoder's (encoder_goals). Bootstrapping through
+states that look alike stitches episodes together. Measured (docs/results.md, "Does the temporal distance rank
+steps?"; docs/ablations.md, "Eq. 4 alone"): fit on a frozen world model it ranks steps about as Eq. 7 does, and
+Eq. 4 alone trained on it reaches more goals on the walker.
 """
+import math
 from dataclasses import dataclass
 from typing import ClassVar
-
-import math
 
 import torch
 import torch.nn as nn

@@ -74,7 +74,7 @@ class Reading(torch.nn.Module):
 def fit(x, g, window=50, tau=0.5, hilbert=False, td=False, updates=3000, batch=16, pairs=1024, weight=0.1, units=128, seed=0):
     """Eq. 7 (one reading) on windows of `window` steps of (x, g) (E, L, O); tau 0.5 is the squared error."""
     if td:
-        return fit_td(x, g, updates, batch * pairs // 16, units=units, seed=seed)
+        return fit_td(x, g, updates, pairs, units=units, seed=seed)
     torch.manual_seed(seed)
     rng = torch.Generator().manual_seed(seed)
     d = Reading(x.shape[-1], hilbert, units)
@@ -134,7 +134,8 @@ def posture_ranking(wm, dist, episodes, goals, body):
 
 def summary(rows, sources=("body", "stand", "walk", "run", "jump")):
     """Per reading, the held-out sources' mean of Spearman(k, d) per episode and per start and of the contrast (d to
-    another episode's frame minus d one step ahead), as mean +- s.e. over the fit seeds' rows."""
+    another episode's frame minus d one step ahead), as mean +- s.e. over the fit seeds' rows; and posture_ranking's
+    Spearman where the rows have it."""
     by = {}
     for r in rows:
         by.setdefault(r["run"].rsplit(" s", 1)[0], []).append(r["distance"])
@@ -144,13 +145,13 @@ def summary(rows, sources=("body", "stand", "walk", "run", "jump")):
     lines = [(name, fits, kind) for name, fits in by.items() for kind in ("post", "enc")]
     if "obs" in first[0][sources[0]]:  # the observations' own distance, the same for every reading
         lines.append(("the observations themselves", first, "obs"))
+    cell = lambda x: f"{np.mean(x):.2f}" + (f" +- {evaluate.stderr(x):.2f}" if len(x) > 1 else "")  # noqa: E731
     for name, fits, kind in lines:
         cells = []
         for read in (lambda m: m["rho_episode"], lambda m: m["rho_start"], lambda m: m["other"] - m["d"][0]):
-            values = [np.mean([read(f[source][kind]) for source in sources]) for f in fits]
-            cells.append(f"{np.mean(values):.2f} +- {evaluate.stderr(values):.2f}")
+            cells.append(cell([np.mean([read(f[source][kind]) for source in sources]) for f in fits]))
         posture = [r["posture"]["rho"] for r in rows if r["run"].rsplit(" s", 1)[0] == name and "posture" in r]
-        cells.append(f"{np.mean(posture):.2f} +- {evaluate.stderr(posture):.2f}" if posture and kind == "enc" else "")
+        cells.append(cell(posture) if posture and kind == "enc" else "")
         out.append(f"| {name} | {len(fits)} | {kind} | " + " | ".join(cells) + " |")
     return "\n".join(out)
 

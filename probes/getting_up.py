@@ -5,7 +5,7 @@ through the body's posture, the stand reward (3 standing + upright) / 4 (envs.po
 walk and run multiply their speed term by it). Every episode starts from DMC's random pose and falls first. An episode
 is "up at the end" when its mean posture over its last 100 steps is >= 0.8. Per task: the mean posture over all
 steps, the share of episodes up at the end, the mean score of those up and of those down, and the mean of all.
-Four readings:
+Five readings:
 * the agent: the benchmark's own episodes (same goals, seeds, threads and matmul route as `python train.py --evaluate`,
   so the last column is the benchmark's number to the digit);
 * the D_body task episodes it was trained on (<data>/<body>, from their stored states; --data: another folder than
@@ -143,7 +143,11 @@ def imagined_rows(models, cfgs, body, befores=(15, 40), after=20):
     posture, post = envs.observed_posture(body, obs.numpy()), wm.observe(obs, action, is_first, sample=False)[0]
     filtered = envs.observed_posture(body, wm.decode(wm.feat(post)).numpy())
     for before in befores:
-        e, t = (torch.tensor(v) for v in zip(*getting_up_events(posture, before, after)))
+        events = getting_up_events(posture, before, after)
+        if not events:
+            yield f"| {before} steps before | no getting-up event in these episodes | 0 | | | | |"
+            continue
+        e, t = (torch.tensor(v) for v in zip(*events))
         index = (t - before)[:, None] + torch.arange(1, before + after + 1)  # (N, before + after): the steps replayed
         imagined = wm.replay({k: v[e, t - before] for k, v in post.items()}, action[e[:, None], index])
         kinds = {"real": posture[e[:, None], index], "filtered posterior": filtered[e[:, None], index],
