@@ -189,3 +189,14 @@ def test_td_loss_bootstraps_inside_an_episode_and_targets_the_discounted_steps()
     # targets below the value weigh 1 - tau = 0.05; a goal not met within the m steps: -(1 - g^m) / (1 - g) - g^m 100 =
     # -100 exactly (the any-frame 30 %, most of the later-frame 50 %), the current frame's 0, one met within them ~ -m
     assert 0.05 * 100**2 * 0.6 < loss.item() < 0.05 * 100**2 * 0.85
+
+
+def test_td_loss_survives_a_uniform_draw_of_exactly_zero(monkeypatch):
+    """torch.rand draws from [0, 1): a 0 once made the geometric gap log(0) / log(gamma) = inf, an index of -2^63 (a
+    phase-1 run stopped on it). Here every goal is a later frame (the first draw 0.5) at the gap of a draw of 0."""
+    x = torch.randn(2, 10, 3)
+    draws = iter([0.5, 0.0])
+    monkeypatch.setattr(torch, "rand", lambda n, generator=None: torch.full((n,), next(draws)))
+    net = DistanceNet(DistanceConfig(reading="td", input="feat", units=8, layers=2), 3)
+    loss, _ = td_loss(net, net, x, [x], torch.zeros(2, 10, dtype=torch.bool), 16)
+    assert torch.isfinite(loss)
