@@ -165,8 +165,8 @@ def td_loss(dist_net, slow_net, x, goals, is_first, num, generator=None):
     b, t, end = b[keep], t[keep], end[b[keep], t[keep]]
     n = len(b)
     kind = torch.bucketize(torch.rand(n, generator=generator), torch.tensor(GOAL_SHARES).cumsum(0)[:-1]).to(x.device)  # 0 current, 1 later, 2 any
-    u = torch.rand(n, generator=generator).clamp_min(torch.finfo(torch.float32).tiny)  # rand's 0: an infinite gap
-    gap = (torch.log(u) / math.log(cfg.gamma)).floor().long().to(x.device) + 1  # geometric, mean 1 / (1 - gamma)
+    uniform = torch.rand(n, generator=generator).clamp_min(torch.finfo(torch.float32).tiny)  # rand's 0: an infinite gap
+    gap = (torch.log(uniform) / math.log(cfg.gamma)).floor().long().to(x.device) + 1  # geometric, mean 1 / (1 - gamma)
     later = torch.minimum(t + gap, end)
     goal_b, goal_t = torch.where(kind == 2, draw(B)[:n], b), torch.where(kind == 0, t, torch.where(kind == 1, later, draw(T)[:n]))
     which = torch.randint(len(goals), (n,), generator=generator).to(x.device)
