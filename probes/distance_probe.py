@@ -71,6 +71,17 @@ class Reading(torch.nn.Module):
         return (self.net(a) - self.net(b)).norm(dim=-1) if self.hilbert else self.net(torch.cat([a, b], -1)).squeeze(-1)
 
 
+class DecodedDistance(torch.nn.Module):
+    """A reading as a run's dist_net is called: d(feat_i, feat_j) on the decoded observations."""
+
+    def __init__(self, reading, decoder):
+        super().__init__()
+        self.reading, self.embed = reading, decoder.forward  # the decoder stays the world model's, not a parameter here
+
+    def forward(self, feat_i, feat_j):
+        return self.reading(self.embed(feat_i), self.embed(feat_j))
+
+
 def fit(x, g, window=50, tau=0.5, hilbert=False, td=False, updates=3000, batch=16, pairs=1024, weight=0.1, units=128, seed=0):
     """Eq. 7 (one reading) on windows of `window` steps of (x, g) (E, L, O); tau 0.5 is the squared error."""
     if td:
@@ -185,7 +196,7 @@ def main():
     for name in readings:
         updates = args.td_updates if name == "td" else args.updates
         d = fit(x, g, updates=updates, seed=args.seed, **READINGS[name])
-        dist = lambda a, b: d(wm.decoder(a), wm.decoder(b))  # noqa: E731  (fidelity.distance_ranking gives posterior features)
+        dist = DecodedDistance(d, wm.decoder)  # fidelity.distance_ranking gives posterior features
         with torch.no_grad():
             row = {"run": f"{args.run} d:{name} s{args.seed}", "step": updates, "distance": {
                 source: fidelity.distance_ranking(wm, models["goal_vae"], dist, eps) for source, eps in held_out.items()},

@@ -41,17 +41,6 @@ import rundir  # noqa: E402
 from probes import distance_probe, imagination_gap  # noqa: E402
 
 
-class DecodedDistance(torch.nn.Module):
-    """A distance_probe reading as the run's dist_net is called: d(feat_i, feat_j) on the decoded observations."""
-
-    def __init__(self, reading, decoder):
-        super().__init__()
-        self.reading, self.embed = reading, decoder.forward  # the decoder stays the world model's, not a parameter here
-
-    def forward(self, feat_i, feat_j):
-        return self.reading(self.embed(feat_i), self.embed(feat_j))
-
-
 def real_critic_loss(critic, slow_critic, dist_net, post_feat, goal, cfg):
     """DreamerV3's repval on D_body: V(s_t, g) along a real segment regressed to TD(lambda) returns of -d(s_{t+1}, g) and
     the slow critic's values. post_feat (B, T, F), goal (B, F) -> loss. Segments that cross an episode start are the
@@ -148,7 +137,7 @@ def main():
         x, g = distance_probe.embedded_episodes(models, [e for k, e in enumerate(body) if k % tc.holdout_every])
         updates = args.distance_updates or (20000 if args.distance == "td" else 3000)
         reading = distance_probe.fit(x, g, updates=updates, seed=args.seed, **distance_probe.READINGS[args.distance]).requires_grad_(False)
-        models["dist_net"] = DecodedDistance(reading, wm.decoder)
+        models["dist_net"] = distance_probe.DecodedDistance(reading, wm.decoder)
     log = train_eq4(models, cfgs, data, args.updates, args.critic_real, args.log_every, args.seed)
     scores = evaluate.goal_reaching(models, cfgs, args.episodes, args.eval_steps, envs.BODY_TASKS)
     print("\n".join(evaluate.summary(scores)))
