@@ -102,6 +102,11 @@ class DistanceNet(nn.Module):
             return (self.net(x_i) - self.net(x_j)).norm(dim=-1) * (1 - self.cfg.gamma)
         return self.net(torch.cat([x_i, x_j], -1)).squeeze(-1)
 
+    def phi(self, feat):
+        """The td reading's embedding in steps, V(s, g) = -||phi(s) - phi(g)|| (cloning.advantage): feat (..., F) -> (..., PHI_DIM)."""
+        assert self.cfg.reading == "td", "phi is the td reading's"
+        return self.net(self.embed(feat.reshape(-1, self.feat_dim))).reshape(*feat.shape[:-1], PHI_DIM)
+
     def forward(self, feat_i, feat_j):
         """feat_i, feat_j (..., F) -> (...)."""
         assert feat_i.shape[-1] == feat_j.shape[-1] == self.feat_dim, (feat_i.shape, feat_j.shape)
