@@ -5,6 +5,8 @@ other:
   TrainConfig, COMPONENTS  the configs of a run, one dataclass per component, and each one's flag prefix
   build_models, load_run   a run's models, fresh or from runs/<name>/checkpoint.pt (rundir.run_checkpoint checks it)
   stored_configs, check_weights  a checkpoint's configs and weights, checked before any model is built
+  resume_from, save, stop_hint   phase 1's checkpoint: where a run goes on from (--resume), what it keeps, what a
+                           diverged update says of it
   default_run_dir, resolve_run   where train.py writes a run, and which one phase 2 uses when none is named
   work_folder              where phase 2 writes for a run: the run's folder, runs/agent_<body> for a shipped agent
   prepare_data             the run's D_body (collected first where incomplete) as training segments and held-out episodes
@@ -17,6 +19,7 @@ import json
 import os
 from typing import ClassVar
 
+import numpy as np
 import torch
 
 import cloning
@@ -28,13 +31,13 @@ import policy
 import rundir
 import world_model
 from presets import DATA, PRESETS
-from video_encoder import load_encoder
+from video_encoder import check_same_encoder, load_encoder
 
 
 @dataclasses.dataclass
 class TrainConfig:
     # rundir.check_flags: the values a field may take where not a count (>= 1), a learning rate in (0, 1) or a float >= 0
-    ranges: ClassVar[dict] = {"seed": (0, None), "policy_start": (0, None), "wm_steps": (0, None), "fidelity_every": (0, None), "holdout_every": (2, None)}
+    ranges: ClassVar[dict] = {"seed": (0, None), "policy_start": (0, None), "wm_steps": (0, None), "holdout_every": (2, None)}
     env: str = "walker"  # the agent's body
     preset: str = "cpu"  # smoke | cpu | paper: sizes of every component and of D_body
     seed: int = 0  # the training seed: torch's and the batches' draws
@@ -49,7 +52,6 @@ class TrainConfig:
     eval_seed: int = 30_000  # the benchmark's first environment seed; another gives fresh start poses, to confirm a choice made on it
     log_every: int = 100  # updates between rows of metrics.jsonl
     checkpoint_every: int = 250  # updates between checkpoints (--resume goes on from the last)
-    fidelity_every: int = 0  # updates between rows of the world model's fidelity benchmark (fidelity.py) in fidelity.jsonl; 0: none
     data: str = "data"  # the datasets' folder (presets.DATA)
     encoder: str = "default"  # video encoder of the features p_t (video_encoder.py)
     threads: int = 1  # torch CPU threads (ours: these small models ran faster on 1 than on 2 with the cores shared, docs/results.md, Speed)
@@ -66,7 +68,7 @@ COMPONENTS = {
 }
 # Switches measured worse and deleted, at the value that turned each off (docs/ablations.md names each one's result and
 # the commit that had it): a stored config that holds one at that value loads as before, one trained with it on is refused
-REMOVED = {"train": dict(act_temperature=0.0, cover_edges=0),
+REMOVED = {"train": dict(act_temperature=0.0, cover_edges=0, fidelity_every=0),
            "ac": dict(reward="distance", mixture=1, actor_input="feat", uncertainty=0.0),
            "cloning": dict(bc_awr=0.0, bc_polish_ema=0.0, bc_polish_fresh=0)}
 
@@ -146,6 +148,67 @@ def load_run(run_dir, device="cpu", env=None):
     for name, model in models.items():
         model.load_state_dict(ckpt["models"][name])
     return cfgs, models, ckpt
+
+
+# fields that may differ when a run is resumed: they do not change what the models are
+RESUMABLE = {"steps", "wm_steps", "log_every", "checkpoint_every", "eval_episodes", "eval_steps", "eval_seed", "data", "threads",
+             "bc_polish", "bc_polish_batches"}  # the polish starts from the training actor, kept apart in the checkpoint
+LR_FLAGS = {"world_model": ("wm", "lr"), "goal_vae": ("goal", "lr"), "dist_net": ("dist", "lr"), "actor": ("ac", "actor_lr"), "critic": ("ac", "critic_lr")}
+
+
+def resume_from(ckpt_path, resume, cfgs, models, optims, encoder, device, rng):
+    """Where a run starts: (0, rng) for a new run; with --resume, its checkpoint's weights, optimisers and RNGs after
+    checking that it is the same run -> (update, numpy Generator)."""
+    if not os.path.exists(ckpt_path):
+        return 0, rng
+    if not resume:
+        raise ValueError(f"{ckpt_path} exists: pass --resume to continue that run, or another --seed for a new one")
+    ckpt, config = rundir.load_checkpoint(ckpt_path, device), {n: dataclasses.asdict(c) for n, c in cfgs.items()}
+    saved = {n: dataclasses.asdict(c) for n, c in stored_configs(ckpt, ckpt_path).items()}  # a deleted switch left on: an error
+    changed = [f"{n}.{k}" for n in config for k in config[n] if k not in RESUMABLE and saved[n].get(k) != config[n][k]]
+    if changed:
+        raise ValueError(f"{ckpt_path} was trained with other {', '.join(changed)}: pass the same flags to resume, or start a new run")
+    if config["train"]["wm_steps"] + config["train"]["steps"] < ckpt["step"]:
+        raise ValueError(f"--wm-steps {config['train']['wm_steps']} + --steps {config['train']['steps']} is below the update {ckpt['step']} of "
+                         f"{ckpt_path}: pass --steps {ckpt['step'] - config['train']['wm_steps']} or more")
+    stage = (saved["train"].get("wm_steps", 0), config["train"]["wm_steps"])
+    if stage[0] != stage[1] and ckpt["step"] > min(stage):  # a longer or shorter stage, but only while the run is in it
+        raise ValueError(f"{ckpt_path} is at update {ckpt['step']}, past its world-model stage of {stage[0]} updates: pass --wm-steps {stage[0]}")
+    check_same_encoder(ckpt["encoder"], encoder.name, ckpt_path)
+    check_weights(ckpt, models, ckpt_path)
+    for name, model in models.items():
+        model.load_state_dict(ckpt["models"][name])
+    models["actor"].load_state_dict(ckpt.get("actor_unpolished", ckpt["models"]["actor"]))  # training goes on from the unpolished actor
+    if "optims" not in ckpt:  # a shipped agent (checkpoint.export_agent: weights only) copied into run_dir: trained on from its
+        # weights (its polished actor) with fresh Adam moments and RNGs seeded from (seed, update) (ours; training longer
+        # than it was shipped, docs/ablations.md)
+        print(f"resumed {ckpt_path} at update {ckpt['step']} from its weights alone (an exported agent): fresh optimisers")
+        torch.manual_seed(config["train"]["seed"] * 1_000_003 + ckpt["step"])
+        return ckpt["step"], np.random.default_rng([config["train"]["seed"], ckpt["step"]])
+    for name, opt in optims.items():
+        opt.load_state_dict(ckpt["optims"][name])
+    torch.set_rng_state(ckpt["torch_rng"].cpu())  # load_checkpoint maps every tensor to `device`; the CPU generator needs a CPU tensor
+    print(f"resumed {ckpt_path} at update {ckpt['step']}")
+    return ckpt["step"], rundir.generator(ckpt["rng"])
+
+
+def save(ckpt_path, cfgs, step, rng, encoder, shapes, models, optims, **actors):
+    """runs/<name>/checkpoint.pt: what checkpoint.load_run reads and what --resume needs (optimisers, RNGs); `actors`:
+    actor state_dicts kept beside the models (actor_unpolished). Returns the update it holds."""
+    state = {"config": {n: dataclasses.asdict(c) for n, c in cfgs.items()}, "step": step, "rng": rng.bit_generator.state,
+             "torch_rng": torch.get_rng_state(), "encoder": encoder.name, "obs_shape": shapes[0], "action_dim": shapes[1], "p_dim": shapes[2],
+             "models": {k: m.state_dict() for k, m in models.items()}, "optims": {k: o.state_dict() for k, o in optims.items()},
+             **actors}
+    rundir.atomic_write(ckpt_path, lambda f: torch.save(state, f))
+    return step
+
+
+def stop_hint(ckpt_path, saved, cfgs, name):
+    """What a diverged update says after 'stopped; ': the checkpoint kept, and the learning rate of the model `name`."""
+    kept = f"the last good checkpoint is {ckpt_path} (update {saved}), untouched" if os.path.exists(ckpt_path) else \
+        f"no checkpoint was written yet (the first comes at update {cfgs['train'].checkpoint_every})"
+    component, field = LR_FLAGS[name]
+    return f"{kept}. A learning rate too high? --{COMPONENTS[component][1]}{field.replace('_', '-')} is {getattr(cfgs[component], field)}"
 
 
 def default_run_dir(env, preset, seed=0, obs=None):
@@ -236,9 +299,7 @@ def demo_folder(cfgs, demo, view):
     """<data>/demos/<demo>_<view> of the run's data folder, its episodes collected first (both views of that body and
     task, the run's preset) where any is missing; an unknown demo lists the valid names."""
     tc = cfgs["train"]
-    body, _, task = demo.rpartition("_")
-    if body not in envs.BODIES or task not in envs.TASKS:
-        raise ValueError(f"unknown demo {demo!r}: valid demos are {', '.join(b + '_' + t for b in envs.BODIES for t in envs.TASKS)}")
+    body, task = envs.parse_demo(demo)
     # the folder a checkpoint names is followed only where it is the preset's or a data folder of this project (the
     # run's D_body or demos in it): a run folder from elsewhere never makes this project write at a place of its choosing
     ours = (os.path.join(tc.data, tc.env, collect.COMPLETE), os.path.join(tc.data, "demos"))

@@ -230,10 +230,11 @@ def folder_metadata(folder):
     name = os.path.basename(os.path.normpath(folder))
     if name in envs.BODIES:
         return {"body": name}
-    parts = name.rsplit("_", 2)
-    if len(parts) == 3 and parts[0] in envs.BODIES and parts[1] in envs.TASKS and parts[2] in envs.VIEWS:
-        return dict(zip(("body", "task", "view"), parts))
-    return {}
+    demo, _, view = name.rpartition("_")
+    try:
+        return dict(zip(("body", "task"), envs.parse_demo(demo)), view=view) if view in envs.VIEWS else {}
+    except ValueError:  # not a demo folder's name
+        return {}
 
 
 def load_folder(folder, keys=tuple(KEYS), encoder=None):

@@ -64,8 +64,8 @@ class DistanceConfig:
     # rundir.check_flags: the values a field may take where not a count (>= 1), a learning rate in (0, 1) or a float >= 0
     choices: ClassVar[dict] = {"input": ("obs", "feat"), "reading": ("eq7", "td")}  # train.py's flags accept these alone
     ranges: ClassVar[dict] = {"encoder_goals": (0, 1), "grad_clip": "> 0", "gamma": (0, 1), "tau": (0, 1), "slow_rate": (0, 1)}
-    units: int = 128  # LEXA: 4 x 128 MLP
-    layers: int = 4  # LEXA
+    units: int = 128  # width of d's MLP (LEXA: 4 x 128)
+    layers: int = 4  # hidden layers of d's MLP (LEXA)
     pairs: int = 1024  # candidate pairs of each kind (same / different trajectory) per batch (ours)
     contrastive_weight: float = 0.1  # weight of Eq. 7's contrastive term (LEXA's 10% negatives ~ 0.11; Eq. 7: 1, equal weights)
     encoder_goals: int = 1  # 1: also fit d(s_i, g_j) with g_j the goal encoder's goal of frame j (ours); 0: Eq. 7 alone

@@ -96,6 +96,14 @@ _STICKMAN_ARM = """
       </body>"""
 
 
+def parse_demo(demo):
+    """A demo's name, <demonstrator body>_<task> (stickman_run), -> (body, task); an unknown one lists the valid names."""
+    body, _, task = str(demo).rpartition("_")
+    if body not in BODIES or task not in TASKS:
+        raise ValueError(f"unknown demo {demo!r}: valid demos are {', '.join(b + '_' + t for b in BODIES for t in TASKS)}")
+    return body, task
+
+
 def setting(agent_body, demo_body, view):
     """The setting of a demo for an agent: SE or CE (same or cross embodiment), SV or CV (same or cross view)."""
     return ("SE" if demo_body == agent_body else "CE") + "-" + ("SV" if view == "side" else "CV")

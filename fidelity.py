@@ -12,8 +12,7 @@ latent's mode, no sampling). At k steps ahead:
     cos       cosine of the goal decoder's p_hat of the imagined state and the recorded p_{t0 + k}: what Eq. 5's OT
               reward reads of imagination (1 = exact)
     filtered  the same for the filtered state at t0 + k: what the goal decoder reads of a true state (the ceiling)
-and the held-out ELBO terms of Eq. 2 (recon, KL per step) on those episodes. train.py runs it every `fidelity_every`
-updates into runs/<name>/fidelity.jsonl (a curve against updates); this command benchmarks a run's checkpoint.
+and the held-out ELBO terms of Eq. 2 (recon, KL per step) on those episodes, of a run's checkpoint.
 
 --ranking is the functional test, for a trained agent (world model and policy): on a same-body cell, does Eq. 5's
 imagined objective rank goals as reality does? Candidates: the zero-shot goals q(s | p_T) of the cell's 10 demos and

@@ -1,5 +1,5 @@
 """Phase 2 on one demo folder (Eq. 1, upper level): GIIL-ZS on each demo, and the goal searches flagged (GIIL-FT,
-GIIL-online); the method is goal_inference.py, every cell of the tables tables.py.
+GIIL-online); the method is goal_inference.py, its harness runner.py, every cell of the tables tables.py.
 
     python imitate.py --demo stickman_run [--view side|diagonal] [--run runs/<name> | --env walker|stickman] [--preset P] [--finetune] [--online]
 """
@@ -8,7 +8,8 @@ import argparse
 import checkpoint
 import envs
 import rundir
-from goal_inference import FINETUNE_FIELDS, SEARCHES, config_flags, imitate, parse_config, parse_online
+from goal_inference import FINETUNE_FIELDS, SEARCHES
+from runner import config_flags, imitate, parse_config, parse_online
 
 
 def main():

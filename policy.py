@@ -39,17 +39,17 @@ class ActorCriticConfig:
                               "slow_critic_rate": (0, 1), "return_norm_decay": (0, 1), "grad_clip": "> 0", "min_std": "> 0", "max_std": "> 0",
                               "mean_scale": "> 0"}
     units: int = 256  # MLP width (ours, a CPU budget; Dreamer V1: 400)
-    actor_layers: int = 2  # (ours, a CPU budget; Dreamer V1: 4)
-    critic_layers: int = 2  # (ours, a CPU budget; Dreamer V1: 3)
+    actor_layers: int = 2  # hidden layers of the actor's MLP (ours, a CPU budget; Dreamer V1: 4)
+    critic_layers: int = 2  # hidden layers of the critic's MLP (ours, a CPU budget; Dreamer V1: 3)
     horizon: int = 15  # imagined steps H, Dreamer V1 (GenRL: 16)
-    gamma: float = 0.99  # Dreamer V1
+    gamma: float = 0.99  # discount of Eq. 4's imagined returns (Dreamer V1)
     lambda_: float = 0.95  # TD(lambda), Dreamer V1
     actor_lr: float = 3e-4  # Adam (ours; Dreamer V1: 8e-5)
     critic_lr: float = 3e-4  # Adam (ours; Dreamer V1: 8e-5)
     grad_clip: float = 100.0  # global gradient norm, Dreamer V1
     mean_scale: float = 5.0  # pre-tanh mean = 5 tanh(x / 5), Dreamer V1's tanh-normal
-    min_std: float = 0.1  # action std bounds, Dreamer V3
-    max_std: float = 1.0  # Dreamer V3
+    min_std: float = 0.1  # lower bound of the actor's std (Dreamer V3)
+    max_std: float = 1.0  # upper bound of the actor's std (Dreamer V3)
     entropy: float = 3e-4  # entropy bonus scale, Dreamer V3
     slow_critic_rate: float = 0.02  # EMA rate of the slow critic that computes the targets, Dreamer V3
     return_norm_decay: float = 0.99  # EMA decay of the 5-95 percentile range of returns, Dreamer V3

@@ -84,15 +84,16 @@ def field_comments(cls):
     return out
 
 
-def config_flags(parser, cls, prefix="", dest="", choices=None):
+def config_flags(parser, cls, prefix="", dest="", choices=None, bare=()):
     """One flag --<prefix><field> per field of the dataclass cls, stored as <dest><field>, default None ('not given': the
-    preset's value applies); its help is the field's source comment. choices: {field: the values allowed}."""
+    preset's value applies); its help is the field's source comment. choices: {field: the values allowed}; bare: fields
+    whose flag has no prefix (--obs, what every command calls the world model's input)."""
     comments, choices = field_comments(cls), choices or {}
     for field in dataclasses.fields(cls):
         kind = type(field.default)
         if kind not in (int, float, str, bool):  # a tuple (online's schedule): only a preset sets it
             continue
-        parser.add_argument("--" + prefix + field.name.replace("_", "-"), dest=dest + field.name, type=kind, default=None,
+        parser.add_argument("--" + ("" if field.name in bare else prefix) + field.name.rstrip("_").replace("_", "-"), dest=dest + field.name, type=kind, default=None,
                             choices=choices.get(field.name), metavar=None if field.name in choices else kind.__name__.upper(),
-                            help=f"{comments.get(field.name) or cls.__name__ + '.' + field.name} (default {field.default!r}, or the "
-                                 f"preset's)".replace("%", "%%"))
+                            help=f"{comments.get(field.name) or cls.__name__ + '.' + field.name} (default {field.default!r}"
+                                 f"{'' if field.name == 'preset' else ', or the preset' + chr(39) + 's'})".replace("%", "%%"))

@@ -28,6 +28,7 @@ import evaluate
 import goal_inference
 import online
 import rundir
+import runner
 from baselines import aime_nob, genrl
 from envs import SETTINGS
 from presets import PRESETS
@@ -158,7 +159,7 @@ def markdown_curves(agent, rows, settings, seeds=3):
                  if method in PAPER_METHODS and agent in PAPER else "-")
         line, cells = curve(points, 1 if method.startswith("GIIL") else seeds)
         for budget, scores, seconds in line:
-            kept = [(c[0].rsplit("_", 1)[1], score) for c, _, score, _ in points[budget] if c in cells]
+            kept = [(envs.parse_demo(c[0])[1], score) for c, _, score, _ in points[budget] if c in cells]
             tasks = " / ".join(f"{np.mean([v for t, v in kept if t == task]):.1f}" if any(t == task for t, _ in kept) else "-" for task in envs.TASKS)
             out.append(f"| {method} | {f'{budget} {BUDGET[method][1]}' if budget else '-'} | {np.mean(scores):.1f} +- "
                        f"{evaluate.stderr(scores):.1f} | {tasks} | {len(cells)} x {len(scores) / len(cells):.0f} | {np.mean(seconds) / 60:.1f} | {paper} |")
@@ -212,7 +213,7 @@ def run_table(run_dir, ic, oc=None, settings=SETTINGS, shard=(0, 1), methods=("f
     is missing from results.jsonl, then writes the tables of every finished cell. `settings` limits which settings run
     now; shard (i, N) runs only the cells i, i + N, ... of those (tables' order: N processes share one table, rows
     appended under a lock and told apart by method and seed). A row counts only if it was made with the demos now on
-    disk (their returns), with the settings asked for (goal_inference.result_config) and by this checkpoint's weights:
+    disk (their returns), with the settings asked for (runner.result_config) and by this checkpoint's weights:
     regenerating D_demo, changing a setting or retraining the agent runs the cells again instead of mixing results."""
     known = [s.flag for s in goal_inference.SEARCHES.values()] + list(BASELINES)
     unknown = [m for m in methods if m not in known]
@@ -224,7 +225,7 @@ def run_table(run_dir, ic, oc=None, settings=SETTINGS, shard=(0, 1), methods=("f
     rundir.not_training(run_dir)
     cfgs, _, ckpt = checkpoint.load_run(run_dir)
     agent, shown, weights = cfgs["train"].env, [], rundir.weights_id(ckpt)
-    configs = {**{m: goal_inference.result_config(ic, m, oc) for m in goal_inference.METHODS}, **{m: b[2] for m, b in baselines.items()}}
+    configs = {**{m: runner.result_config(ic, m, oc) for m in goal_inference.METHODS}, **{m: b[2] for m, b in baselines.items()}}
     searches = [m for m, s in goal_inference.SEARCHES.items() if s.flag in methods]
     # the shards split the cells of `settings`, so that none is left idle; a cell left out runs nothing, its finished rows still count
     runs_here = [cell for cell in envs.cells(agent) if cell[1] in settings][shard[0]::shard[1]]
@@ -247,7 +248,7 @@ def run_table(run_dir, ic, oc=None, settings=SETTINGS, shard=(0, 1), methods=("f
             missing = [m for m in searches if min(count(m), count("GIIL-ZS (demo 0)")) < goal_inference.SEARCHES[m].seeds(ic, oc)]
             zero_shot = bool(searches) and count("GIIL-ZS") < demos_per_cell
             if (zero_shot or missing) and run_now:
-                goal_inference.imitate(run_dir, demo, view, ic, missing, oc, zero_shot, done)
+                runner.imitate(run_dir, demo, view, ic, missing, oc, zero_shot, done)
             for name, method in BASELINES.items():
                 module, cfg, _ = baselines[method]
                 if count(method) < cfg.seeds and run_now and name in methods:
@@ -296,10 +297,10 @@ def main():
     parser.add_argument("--min-seeds", type=int, default=3, help="with --curves: a baseline's cell counts with this many seeds at each budget")
     parser.add_argument("--png", help="with --curves: also draw the figure here")
     rundir.threads_flag(parser)
-    goal_inference.config_flags(parser)
+    runner.config_flags(parser)
     args = parser.parse_args()
-    ic, given = goal_inference.parse_config(args)
-    oc, online_given = goal_inference.parse_online(args, ic.preset)
+    ic, given = runner.parse_config(args)
+    oc, online_given = runner.parse_online(args, ic.preset)
     mode = "--run" if args.run or args.env else "--table" if args.table else "--curves"
     allowed = {"--run": ("methods", "settings", "shard", "budgets", "threads"), "--table": ("budgets",), "--curves": ("settings", "min_seeds", "png")}
     extra = [f for f in ("methods", "settings", "shard", "budgets", "min_seeds", "png", "threads")

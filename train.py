@@ -7,8 +7,8 @@ One update, in the order of Sec. 4:
   Eq. 4  goal-conditioned actor-critic in imagination, reward -d(s, g)   (after `policy_start` updates,
          once the world model and distance give a meaningful reward)
   ours   hindsight behaviour cloning beside Eq. 4's actor loss, and a cloning polish after the last update (cloning.py)
-The first `wm_steps` updates (ours; 0 in every preset) are a world-model stage, Eq. 2 and 3 alone, with the fidelity
-benchmark (fidelity.py) every `fidelity_every` updates; `steps` updates of all of the above follow.
+The first `wm_steps` updates (ours; 0 in every preset) are a world-model stage, Eq. 2 and 3 alone; `steps` updates of
+all of the above follow.
 Ends with the learning curve (learning_curve.png) and the goal-reaching benchmark (evaluate.py): the multi-task
 policy in the real environment with its own body's side-view demos as goals, against random actions.
 
@@ -31,24 +31,17 @@ import cloning
 import distance
 import envs
 import evaluate
-import fidelity
 import policy
 import rundir
 from checkpoint import COMPONENTS, TrainConfig, default_run_dir, load_run, prepare_data
 from presets import PRESETS, config_flags
-from video_encoder import check_same_encoder
-
-
-# fields that may differ when a run is resumed: they do not change what the models are
-RESUMABLE = {"steps", "wm_steps", "log_every", "checkpoint_every", "fidelity_every", "eval_episodes", "eval_steps", "eval_seed", "data", "threads",
-             "bc_polish", "bc_polish_batches"}  # the polish starts from the training actor, kept apart in the checkpoint
-LR_FLAGS = {"world_model": ("wm", "lr"), "goal_vae": ("goal", "lr"), "dist_net": ("dist", "lr"), "actor": ("ac", "actor_lr"), "critic": ("ac", "critic_lr")}
 
 
 def add_config_flags(parser):
     """One flag per field of each component's config (presets.config_flags: its help the field's comment)."""
     for name, (cls, prefix) in COMPONENTS.items():
-        config_flags(parser, cls, prefix, f"{name}.", {"preset": tuple(PRESETS["train"])} if name == "train" else getattr(cls, "choices", None))
+        config_flags(parser, cls, prefix, f"{name}.", {"preset": tuple(PRESETS["train"])} if name == "train" else getattr(cls, "choices", None),
+                     bare=("obs",) if name == "wm" else ())
 
 
 def resolve_configs(args, preset):
@@ -109,61 +102,6 @@ def make_optimizers(models, cfgs):
     return {name: torch.optim.Adam(models[name].parameters(), lr=lr) for name, lr in lrs.items()}, clip
 
 
-def resume_from(ckpt_path, resume, cfgs, models, optims, encoder, device, rng):
-    """Where a run starts: (0, rng) for a new run; with --resume, its checkpoint's weights, optimisers and RNGs after
-    checking that it is the same run -> (update, numpy Generator)."""
-    if not os.path.exists(ckpt_path):
-        return 0, rng
-    if not resume:
-        raise ValueError(f"{ckpt_path} exists: pass --resume to continue that run, or another --seed for a new one")
-    ckpt, config = rundir.load_checkpoint(ckpt_path, device), {n: dataclasses.asdict(c) for n, c in cfgs.items()}
-    saved = {n: dataclasses.asdict(c) for n, c in checkpoint.stored_configs(ckpt, ckpt_path).items()}  # a deleted switch left on: an error
-    changed = [f"{n}.{k}" for n in config for k in config[n] if k not in RESUMABLE and saved[n].get(k) != config[n][k]]
-    if changed:
-        raise ValueError(f"{ckpt_path} was trained with other {', '.join(changed)}: pass the same flags to resume, or start a new run")
-    if config["train"]["wm_steps"] + config["train"]["steps"] < ckpt["step"]:
-        raise ValueError(f"--wm-steps {config['train']['wm_steps']} + --steps {config['train']['steps']} is below the update {ckpt['step']} of "
-                         f"{ckpt_path}: pass --steps {ckpt['step'] - config['train']['wm_steps']} or more")
-    stage = (saved["train"].get("wm_steps", 0), config["train"]["wm_steps"])
-    if stage[0] != stage[1] and ckpt["step"] > min(stage):  # a longer or shorter stage, but only while the run is in it
-        raise ValueError(f"{ckpt_path} is at update {ckpt['step']}, past its world-model stage of {stage[0]} updates: pass --wm-steps {stage[0]}")
-    check_same_encoder(ckpt["encoder"], encoder.name, ckpt_path)
-    checkpoint.check_weights(ckpt, models, ckpt_path)
-    for name, model in models.items():
-        model.load_state_dict(ckpt["models"][name])
-    models["actor"].load_state_dict(ckpt.get("actor_unpolished", ckpt["models"]["actor"]))  # training goes on from the unpolished actor
-    if "optims" not in ckpt:  # a shipped agent (checkpoint.export_agent: weights only) copied into run_dir: trained on from its
-        # weights (its polished actor) with fresh Adam moments and RNGs seeded from (seed, update) (ours; training longer
-        # than it was shipped, docs/ablations.md)
-        print(f"resumed {ckpt_path} at update {ckpt['step']} from its weights alone (an exported agent): fresh optimisers")
-        torch.manual_seed(config["train"]["seed"] * 1_000_003 + ckpt["step"])
-        return ckpt["step"], np.random.default_rng([config["train"]["seed"], ckpt["step"]])
-    for name, opt in optims.items():
-        opt.load_state_dict(ckpt["optims"][name])
-    torch.set_rng_state(ckpt["torch_rng"].cpu())  # load_checkpoint maps every tensor to `device`; the CPU generator needs a CPU tensor
-    print(f"resumed {ckpt_path} at update {ckpt['step']}")
-    return ckpt["step"], rundir.generator(ckpt["rng"])
-
-
-def save(ckpt_path, cfgs, step, rng, encoder, shapes, models, optims, **actors):
-    """runs/<name>/checkpoint.pt: what checkpoint.load_run reads and what --resume needs (optimisers, RNGs); `actors`:
-    actor state_dicts kept beside the models (actor_unpolished). Returns the update it holds."""
-    state = {"config": {n: dataclasses.asdict(c) for n, c in cfgs.items()}, "step": step, "rng": rng.bit_generator.state,
-             "torch_rng": torch.get_rng_state(), "encoder": encoder.name, "obs_shape": shapes[0], "action_dim": shapes[1], "p_dim": shapes[2],
-             "models": {k: m.state_dict() for k, m in models.items()}, "optims": {k: o.state_dict() for k, o in optims.items()},
-             **actors}
-    rundir.atomic_write(ckpt_path, lambda f: torch.save(state, f))
-    return step
-
-
-def stop_hint(ckpt_path, saved, cfgs, name):
-    """What a diverged update says after 'stopped; ': the checkpoint kept, and the learning rate of the model `name`."""
-    kept = f"the last good checkpoint is {ckpt_path} (update {saved}), untouched" if os.path.exists(ckpt_path) else \
-        f"no checkpoint was written yet (the first comes at update {cfgs['train'].checkpoint_every})"
-    component, field = LR_FLAGS[name]
-    return f"{kept}. A learning rate too high? --{COMPONENTS[component][1]}{field.replace('_', '-')} is {getattr(cfgs[component], field)}"
-
-
 def diagnostics(models, cfgs, data, rng, device, post, post_feat, goal_feat, is_first, step):
     """What a log row adds to the losses: open-loop imagination (evaluate.open_loop_metrics), d of encoder goals 1, 5, 15
     and 30 steps ahead (distance.distance_profile), Eq. 4's reward on reachable goals (evaluate.reachable_goal_reward)."""
@@ -200,15 +138,12 @@ def pretrain(cfgs, run_dir, resume):
     models = checkpoint.build_models(cfgs, *shapes, device)
     wm, vae, dist_net, actor, critic, slow_critic = (models[k] for k in ("world_model", "goal_vae", "dist_net", "actor", "critic", "slow_critic"))
     optims, clips = make_optimizers(models, cfgs)
-    ckpt_path, log_path, fidelity_path = (os.path.join(run_dir, n) for n in ("checkpoint.pt", "metrics.jsonl", "fidelity.jsonl"))
-    first, rng = resume_from(ckpt_path, resume, cfgs, models, optims, encoder, device, rng)
+    ckpt_path, log_path = (os.path.join(run_dir, n) for n in ("checkpoint.pt", "metrics.jsonl"))
+    first, rng = checkpoint.resume_from(ckpt_path, resume, cfgs, models, optims, encoder, device, rng)
     rundir.trim_jsonl(log_path, first)  # rows a killed run logged after its checkpoint
-    if os.path.exists(fidelity_path):
-        rundir.trim_jsonl(fidelity_path, first)
-    keep = lambda done, **actors: save(ckpt_path, cfgs, done, rng, encoder, shapes, models, optims, **actors)
-    update = lambda name, loss, term: policy.checked_step(optims[name], loss, term, step, lambda: stop_hint(ckpt_path, saved, cfgs, name), clips[name])
+    keep = lambda done, **actors: checkpoint.save(ckpt_path, cfgs, done, rng, encoder, shapes, models, optims, **actors)
+    update = lambda name, loss, term: policy.checked_step(optims[name], loss, term, step, lambda: checkpoint.stop_hint(ckpt_path, saved, cfgs, name), clips[name])
     saved, t0, metrics, total = first, time.time(), {}, tc.wm_steps + tc.steps
-    fidelity_sources = fidelity.held_out_episodes(cfgs) if tc.fidelity_every else None
     for step in (bar := tqdm(range(first, total), initial=first, total=total, desc=f"train {os.path.basename(run_dir)}")):
         batch = data.sample(wc.batch, rng, device)
         logged = (step + 1) % tc.log_every == 0 or step + 1 == total  # the update whose metrics the log row keeps
@@ -264,8 +199,6 @@ def pretrain(cfgs, run_dir, resume):
             rundir.append_jsonl(log_path, metrics)
             bar.write(log_line(metrics))
             t0 = time.time()
-        if tc.fidelity_every and (step + 1) % tc.fidelity_every == 0:
-            rundir.append_jsonl(fidelity_path, fidelity.benchmark(models, fidelity_sources, step + 1, run_dir))
         if (step + 1) % tc.checkpoint_every == 0 or step + 1 == total:
             saved = keep(step + 1)
     if cc.bc and cc.bc_polish:  # ours: cloning on the final world model; the checkpoint keeps the unpolished actor to resume from
@@ -282,7 +215,6 @@ def main():
     parser.add_argument("--resume", action="store_true", help="continue runs/<name>/checkpoint.pt (in a copy of a shipped agent: train on from its weights, fresh optimisers)")
     parser.add_argument("--evaluate", action="store_true", help="only the goal-reaching benchmark (evaluate.py) of the trained run")
     parser.add_argument("--allow-cpu", action="store_true", help="train --preset paper without a GPU (it is sized for one)")
-    parser.add_argument("--obs", dest="wm.obs", choices=("state", "pixels"), default=None, help="world-model input (default: the preset's)")
     parser.add_argument("--run-dir", default=None, help="default runs/<env>_<obs>_<preset>_s<seed>")
     parser.add_argument("--export", metavar="DIR", help="write the trained run (--run-dir) as a shipped agent DIR/checkpoint.pt "
                         "(weights only, float32), then exit; e.g. agents/walker")

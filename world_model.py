@@ -37,6 +37,7 @@ import torch.nn.functional as F
 class WorldModelConfig:
     # rundir.check_flags: the values a field may take where not a count (>= 1), a learning rate in (0, 1) or a float >= 0
     ranges: ClassVar[dict] = {"overshoot": (0, None), "discrete": (0, None), "unimix": (0, 1), "grad_clip": "> 0", "min_std": "> 0"}
+    choices: ClassVar[dict] = {"obs": ("state", "pixels")}  # train.py's --obs accepts these alone
     obs: str = "state"  # 'state': proprioception (ours, a CPU budget; deviation) or 'pixels': 64x64x3 (the paper)
     deter: int = 200  # GRU state h_t, Dreamer V1
     stoch: int = 30  # z_t: Gaussian units (Dreamer V1), or categorical variables when discrete > 0 (DreamerV2; GenRL: 32)
@@ -45,7 +46,7 @@ class WorldModelConfig:
     hidden: int = 256  # width of the RSSM's input and head layers (ours; Dreamer V1: 200)
     units: int = 256  # width of the state encoder/decoder MLPs (ours; Dreamer V1's MLP size: 400)
     layers: int = 2  # hidden layers of the state encoder/decoder MLPs (ours: a 24-36-d vector needs little)
-    cnn_depth: int = 32  # Dreamer V1 (channels 32, 64, 128, 256)
+    cnn_depth: int = 32  # channels of the first conv layer of the pixel encoder/decoder, doubled per layer (Dreamer V1: 32, 64, 128, 256)
     min_std: float = 0.1  # Dreamer V1: std = softplus(x) + 0.1 of a Gaussian z_t
     free_nats: float = 1.0  # Dreamer V3: each KL term is clipped below 1 nat per step
     kl_dyn: float = 0.5  # Dreamer V3 KL balancing: weight of KL(sg(post) || prior), trains the prior

@@ -204,7 +204,7 @@ def load_cell(run_dir, demo, view, data=None):
     demos = collect.load_folder(folder, ("p",))
     for d in demos:
         check_same_encoder(ckpt["encoder"], d["encoder"], d["path"])
-    demo_body, task = demo.rsplit("_", 1)
+    demo_body, task = envs.parse_demo(demo)
     envs._check_name("task", task, envs.TASKS)
     return {"run_dir": run_dir, "cfgs": cfgs, "models": models, "ckpt": ckpt, "device": device, "demo": demo, "view": view,
             "demos": demos, "demo_returns": [round(d["return"], 3) for d in demos], "task": task,

@@ -66,7 +66,7 @@ def probe(run, demo, view, episodes, out):
     cfgs, models, _ = checkpoint.load_run(run, "cpu")
     torch.set_num_threads(1)
     rundir.fast_matmul()
-    task = demo.rsplit("_", 1)[1]
+    task = envs.parse_demo(demo)[1]
     demo_p = [d["p"] for d in collect.load_folder(checkpoint.demo_folder(cfgs, demo, view), ("p",))]
     sets = candidate_sets(models["goal_vae"], demo_p)
     rows = []

@@ -67,7 +67,7 @@ def main():
         if where not in args.settings.split(","):
             continue
         demo, view = envs.demo_of(agent, task, where)
-        body = demo.rsplit("_", 1)[0]
+        body = envs.parse_demo(demo)[0]
         load = lambda t: collect.load_folder(os.path.join(data, "demos", f"{body}_{t}_{view}"), ("p",))
         demo_p = torch.as_tensor(np.stack([d["p"] for d in load(task)]))
         J = {}

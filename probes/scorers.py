@@ -72,7 +72,7 @@ def render_cell(run, demo, view, n_goals, episodes):
     cfgs, models, _ = checkpoint.load_run(run, "cpu")
     torch.set_num_threads(1)
     rundir.fast_matmul()
-    task, encoder = demo.rsplit("_", 1)[1], load_encoder(cfgs["train"].encoder)
+    task, encoder = envs.parse_demo(demo)[1], load_encoder(cfgs["train"].encoder)
     demo_p = np.stack([d["p"] for d in collect.load_folder(checkpoint.demo_folder(cfgs, demo, view), ("p",))])
     goals = online.posterior_goals(models["goal_vae"], demo_p[0][-1], n_goals, seed=0)
     p, true = [], []

@@ -12,12 +12,13 @@ import checkpoint
 import goal_inference
 import ot_reward
 import presets
+import runner
 
 SMOKE = goal_inference.ImitateConfig(**presets.PRESETS["imitate"]["smoke"])
 
 
 def test_zero_shot_and_finetune_end_to_end(smoke_run):
-    rows = goal_inference.imitate(smoke_run, "stickman_run", "diagonal", SMOKE, ["GIIL-FT"])
+    rows = runner.imitate(smoke_run, "stickman_run", "diagonal", SMOKE, ["GIIL-FT"])
     zs = [r for r in rows if r["method"] == "GIIL-ZS"]
     ft = [r for r in rows if r["method"] == "GIIL-FT"]
     zs0 = [r for r in rows if r["method"] == "GIIL-ZS (demo 0)"]
@@ -66,16 +67,16 @@ def test_a_new_goal_search_is_one_function_and_one_entry(smoke_run, tmp_path, mo
     entry = goal_inference.GoalSearch(last_demo, lambda ic, oc: 2, lambda ic, oc: {"eval_steps": ic.eval_steps, "last": True}, "last")
     monkeypatch.setitem(goal_inference.SEARCHES, "last demo", entry)
     monkeypatch.setattr(goal_inference, "METHODS", goal_inference.METHODS + ("last demo",))
-    rows = goal_inference.imitate(run, "walker_walk", "side", SMOKE, ["last demo"], zero_shot=False)
+    rows = runner.imitate(run, "walker_walk", "side", SMOKE, ["last demo"], zero_shot=False)
     assert [(r["method"], r["seed"]) for r in rows] == [("GIIL-ZS (demo 0)", 0), ("last demo", 0), ("GIIL-ZS (demo 0)", 1), ("last demo", 1)]
     assert rows[1]["config"] == {"eval_steps": SMOKE.eval_steps, "last": True} and rows[3]["picked"] == 1
-    assert goal_inference.imitate(run, "walker_walk", "side", SMOKE, ["last demo"], zero_shot=False) == []
+    assert runner.imitate(run, "walker_walk", "side", SMOKE, ["last demo"], zero_shot=False) == []
     assert "last demo (ours)" in tables.markdown_tables("walker", rows) and "last demo - ZS (demo 0), paired" in tables.markdown_tables("walker", rows)
 
 
 def test_unknown_demo_lists_the_valid_names(smoke_run):
     with pytest.raises(ValueError, match=r"unknown demo 'stickman_fly': valid demos are walker_stand, .*, stickman_jump$"):
-        goal_inference.imitate(smoke_run, "stickman_fly", "side", SMOKE)
+        runner.imitate(smoke_run, "stickman_fly", "side", SMOKE)
 
 
 def test_missing_demos_are_collected_first(smoke_run, smoke_data, tmp_path):
@@ -87,7 +88,7 @@ def test_missing_demos_are_collected_first(smoke_run, smoke_data, tmp_path):
     ckpt = torch.load(os.path.join(run, "checkpoint.pt"), weights_only=True)
     ckpt["config"]["train"].update(data=data, preset="smoke")
     torch.save(ckpt, os.path.join(run, "checkpoint.pt"))
-    rows = goal_inference.imitate(run, "stickman_run", "side", SMOKE, ["GIIL-FT"])
+    rows = runner.imitate(run, "stickman_run", "side", SMOKE, ["GIIL-FT"])
     assert [r["method"] for r in rows] == ["GIIL-ZS"] * 2 + ["GIIL-ZS (demo 0)", "GIIL-FT"] * SMOKE.seeds
     assert sorted(os.listdir(os.path.join(data, "demos"))) == ["stickman_run_diagonal", "stickman_run_side"]
     assert sorted(os.listdir(os.path.join(data, "demos", "stickman_run_side"))) == ["00.npz", "01.npz"]
@@ -107,7 +108,7 @@ def test_default_run_follows_preset_and_agent(tmp_path):
 
 def test_no_checkpoint_names_the_train_command(tmp_path):
     with pytest.raises(FileNotFoundError, match="python train.py"):
-        goal_inference.imitate(str(tmp_path), "walker_run", "side", SMOKE)
+        runner.imitate(str(tmp_path), "walker_run", "side", SMOKE)
 
 
 def test_demo_features_from_another_encoder_or_nan_are_errors(smoke_run, smoke_data, tmp_path):
@@ -122,11 +123,11 @@ def test_demo_features_from_another_encoder_or_nan_are_errors(smoke_run, smoke_d
     episode = dict(np.load(path))
     np.savez(path, **dict(episode, encoder="torchscript:other.pt:0123456789ab"))
     with pytest.raises(ValueError, match="other.pt"):
-        goal_inference.imitate(run, "walker_walk", "side", SMOKE)
+        runner.imitate(run, "walker_walk", "side", SMOKE)
     episode["p"][3] = np.nan
     np.savez(path, **episode)
     with pytest.raises(ValueError, match=r"01.npz: key 'p' must be a finite"):
-        goal_inference.imitate(run, "walker_walk", "side", SMOKE)
+        runner.imitate(run, "walker_walk", "side", SMOKE)
 
 
 def test_command_line(smoke_run, tmp_path):
@@ -151,7 +152,7 @@ def test_goal_searches_leave_the_policy_as_pretrained(smoke_run, tmp_path, monke
     before = {k: {n: t.clone() for n, t in m.state_dict().items()} for k, m in checkpoint.load_run(run)[1].items()}
     loaded, load_run = [], checkpoint.load_run
     monkeypatch.setattr(checkpoint, "load_run", lambda *args: loaded.append(load_run(*args)) or loaded[-1])
-    goal_inference.imitate(run, "walker_run", "side", SMOKE, ["GIIL-FT"], zero_shot=False)
+    runner.imitate(run, "walker_run", "side", SMOKE, ["GIIL-FT"], zero_shot=False)
     assert all(torch.equal(before[k][n], t) for k, m in loaded[0][1].items() for n, t in m.state_dict().items())
 
 
@@ -182,7 +183,7 @@ def test_zero_shot_demo_0_is_finetuning_that_never_moves_the_goal(smoke_run, tmp
     run = str(tmp_path / "run")
     shutil.copytree(smoke_run, run)
     ic = dataclasses.replace(SMOKE, eval_episodes=2, goal_lr=1e-12)  # each Adam update moves g by ~1e-12: nothing
-    rows = goal_inference.imitate(run, "walker_walk", "side", ic, ["GIIL-FT"], zero_shot=False)
+    rows = runner.imitate(run, "walker_walk", "side", ic, ["GIIL-FT"], zero_shot=False)
     zs0 = [r["episode_scores"] for r in rows if r["method"] == "GIIL-ZS (demo 0)"]
     ft = [r["episode_scores"] for r in rows if r["method"] == "GIIL-FT"]
     assert len(zs0) == SMOKE.seeds and np.allclose(zs0, ft, atol=1e-6)

@@ -13,6 +13,7 @@ import goal_inference
 import online
 import presets
 import rundir
+import runner
 import tables
 import video_encoder
 
@@ -69,17 +70,17 @@ def test_refinement_never_reads_the_task_reward(smoke_run):
 
 def test_online_end_to_end_pairs_with_its_zero_shot_start(smoke_run):
     oc = online.OnlineConfig(**presets.PRESETS["online"]["smoke"])
-    rows = goal_inference.imitate(smoke_run, "stickman_walk", "side", SMOKE, ["GIIL-online"], oc, zero_shot=False)
+    rows = runner.imitate(smoke_run, "stickman_walk", "side", SMOKE, ["GIIL-online"], oc, zero_shot=False)
     on = [r for r in rows if r["method"] == "GIIL-online"]
     zs0 = [r for r in rows if r["method"] == "GIIL-ZS (demo 0)"]
     assert len(on) == len(zs0) == oc.seeds
     assert on[0]["env_steps"] == online.budget(oc, 2) * SMOKE.eval_steps and on[0]["chosen_demo"] in (0, 1)
     stored = [r for r in rundir.read_jsonl(os.path.join(smoke_run, "results.jsonl")) if r["method"] == "GIIL-online"]
-    assert stored[-1]["config"] == goal_inference.result_config(SMOKE, "GIIL-online", oc) and "schedule" in stored[-1]["config"]
+    assert stored[-1]["config"] == runner.result_config(SMOKE, "GIIL-online", oc) and "schedule" in stored[-1]["config"]
     text = tables.markdown_tables("walker", rows)
     assert "GIIL-online (ours)" in text and "online - ZS (demo 0), paired" in text
     # the same command again finds its rows finished (as read back from JSON) and runs nothing
-    assert goal_inference.imitate(smoke_run, "stickman_walk", "side", SMOKE, ["GIIL-online"], oc, zero_shot=False) == []
+    assert runner.imitate(smoke_run, "stickman_walk", "side", SMOKE, ["GIIL-online"], oc, zero_shot=False) == []
 
 
 def test_posterior_goals_start_at_the_zero_shot_goal(smoke_run):
@@ -96,7 +97,7 @@ def test_online_with_its_zero_shot_column_writes_the_curve(smoke_run):
     """imitate.py --online's cell: GIIL-ZS of every demo, then GIIL-online, and the curve of the goal it would choose
     after each real episode, a PNG beside the cell's videos."""
     oc = online.OnlineConfig(**presets.PRESETS["online"]["smoke"])
-    goal_inference.imitate(smoke_run, "walker_stand", "side", SMOKE, ["GIIL-online"], oc)
+    runner.imitate(smoke_run, "walker_stand", "side", SMOKE, ["GIIL-online"], oc)
     path = os.path.join(checkpoint.work_folder(smoke_run), "imitate", "walker_stand_side_online_curve.png")
     assert os.path.getsize(path) > 1000 and open(path, "rb").read(8) == b"\x89PNG\r\n\x1a\n"
 
@@ -104,7 +105,7 @@ def test_online_with_its_zero_shot_column_writes_the_curve(smoke_run):
 def test_finetune_and_online_share_their_zero_shot_start(smoke_run):
     """One command with both: GIIL-ZS (demo 0) once per seed, not once per method."""
     oc = online.OnlineConfig(**presets.PRESETS["online"]["smoke"])
-    rows = goal_inference.imitate(smoke_run, "walker_jump", "diagonal", SMOKE, ["GIIL-FT", "GIIL-online"], oc, zero_shot=False)
+    rows = runner.imitate(smoke_run, "walker_jump", "diagonal", SMOKE, ["GIIL-FT", "GIIL-online"], oc, zero_shot=False)
     zs0 = [r["seed"] for r in rows if r["method"] == "GIIL-ZS (demo 0)"]
     assert sorted(zs0) == list(range(max(SMOKE.seeds, oc.seeds)))
     assert sum(r["method"] == "GIIL-online" for r in rows) == oc.seeds

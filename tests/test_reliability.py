@@ -23,6 +23,7 @@ import goal_inference
 import imitate
 import presets
 import rundir
+import runner
 import tables
 import train
 from tests.fixtures import train_args
@@ -187,7 +188,7 @@ def test_a_data_folder_named_by_a_checkpoint_from_elsewhere_is_not_followed(smok
     elsewhere.mkdir(parents=True)
     run = copy_run(smoke_run, tmp_path, str(elsewhere))
     with pytest.raises(ValueError, match=r"names the data folder .*/some/other/place, which holds neither D_body nor demos: not followed"):
-        goal_inference.imitate(run, "walker_run", "side", SMOKE_IMITATE, [])
+        runner.imitate(run, "walker_run", "side", SMOKE_IMITATE, [])
     assert os.listdir(elsewhere) == [] and not os.path.exists(os.path.join(run, "results.jsonl"))
 
 
@@ -200,7 +201,7 @@ def test_demos_of_two_lengths_are_refused(smoke_run, smoke_data, tmp_path):
     collect.save_episode(path, {k: v[:11] if v.ndim else v for k, v in episode.items()})
     run = copy_run(smoke_run, tmp_path, data)
     with pytest.raises(ValueError, match=r"walker_run_side mixes episodes of 21 and 11 steps .*00.npz.*01.npz"):
-        goal_inference.imitate(run, "walker_run", "side", SMOKE_IMITATE, ["GIIL-FT"])
+        runner.imitate(run, "walker_run", "side", SMOKE_IMITATE, ["GIIL-FT"])
 
 
 def test_collection_into_another_presets_folder_is_refused(smoke_data, tmp_path):
@@ -260,7 +261,7 @@ def test_phase_2_divergence_stops_before_writing_a_result(smoke_run, tmp_path, m
 
     monkeypatch.setattr(goal_inference, "goal_inference_loss", nan_loss)
     with pytest.raises(ValueError, match=r"GIIL-FT seed 0: Eq. 5 L_GI is nan at update 0: stopped"):
-        goal_inference.imitate(run, "walker_run", "side", SMOKE_IMITATE, ["GIIL-FT"], zero_shot=False)
+        runner.imitate(run, "walker_run", "side", SMOKE_IMITATE, ["GIIL-FT"], zero_shot=False)
     rows = rundir.read_jsonl(os.path.join(run, "results.jsonl"))
     assert [r["method"] for r in rows] == ["GIIL-ZS (demo 0)"]  # its zero-shot evaluation, written before; no GIIL-FT row
 
@@ -289,7 +290,7 @@ def test_imitate_flags_out_of_range(given, message, smoke_run, tmp_path):
     run = copy_run(smoke_run, tmp_path)
     ic = goal_inference.ImitateConfig(**{**presets.PRESETS["imitate"]["smoke"], **given})
     with pytest.raises(ValueError, match=message):
-        goal_inference.imitate(run, "walker_run", "side", ic, ["GIIL-FT"])
+        runner.imitate(run, "walker_run", "side", ic, ["GIIL-FT"])
     assert not os.path.exists(os.path.join(run, "results.jsonl"))
 
 
@@ -315,7 +316,7 @@ def test_phase_2_threads_are_the_command_lines_not_the_runs(smoke_run, tmp_path)
     threads = torch.get_num_threads()
     torch.set_num_threads(1)
     try:
-        goal_inference.imitate(run, "walker_run", "side", SMOKE_IMITATE)
+        runner.imitate(run, "walker_run", "side", SMOKE_IMITATE)
         assert torch.get_num_threads() == 1
     finally:
         torch.set_num_threads(threads)
@@ -600,9 +601,9 @@ def test_ctrl_c_then_the_same_imitate_command_goes_on_without_duplicates(smoke_r
     path = os.path.join(run, "results.jsonl")
     assert [(r["method"], r["seed"]) for r in rundir.read_jsonl(path)] == [("GIIL-ZS", 0), ("GIIL-ZS", 1), ("GIIL-ZS (demo 0)", 0)]
     ic = goal_inference.ImitateConfig(**presets.PRESETS["imitate"]["smoke"], preset="smoke")  # what --preset smoke makes
-    rows = goal_inference.imitate(run, "walker_run", "side", ic, ["GIIL-FT"])
+    rows = runner.imitate(run, "walker_run", "side", ic, ["GIIL-FT"])
     assert [(r["method"], r["seed"]) for r in rows] == [("GIIL-FT", 0), ("GIIL-ZS (demo 0)", 1), ("GIIL-FT", 1)]
-    assert goal_inference.imitate(run, "walker_run", "side", ic, ["GIIL-FT"]) == [] and len(rundir.read_jsonl(path)) == 6
+    assert runner.imitate(run, "walker_run", "side", ic, ["GIIL-FT"]) == [] and len(rundir.read_jsonl(path)) == 6
 
 
 def test_an_empty_episode_file_is_collected_again(smoke_data, tmp_path):
@@ -689,7 +690,7 @@ def test_the_shipped_agents_results_go_to_runs_not_into_its_folder(smoke_run, tm
     shutil.copy(os.path.join(smoke_run, "checkpoint.pt"), "agents/walker/checkpoint.pt")
     work = checkpoint.work_folder("agents/walker")
     assert work == os.path.join("runs", "agent_walker") and os.path.realpath(os.path.join(work, "checkpoint.pt")) == str(tmp_path / "agents/walker/checkpoint.pt")
-    rows = goal_inference.imitate(work, "walker_run", "side", SMOKE_IMITATE, [])
+    rows = runner.imitate(work, "walker_run", "side", SMOKE_IMITATE, [])
     assert rows and all(r["weights"] == rundir.weights_id(rundir.run_checkpoint("agents/walker")) for r in rows)
     assert os.listdir("agents/walker") == ["checkpoint.pt"] and sorted(os.listdir(work)) == ["checkpoint.pt", "imitate", "results.jsonl"]
     assert checkpoint.work_folder("agents/walker") == work and checkpoint.work_folder(smoke_run) == smoke_run  # again; a run of one's own
@@ -760,14 +761,14 @@ def test_rows_of_other_weights_are_not_credited_to_the_agent(smoke_run, tmp_path
     """imitate's rows carry rundir.weights_id; after the weights change the same command runs again, and the
     tables count the new agent's rows only."""
     run = copy_run(smoke_run, tmp_path)
-    first = goal_inference.imitate(run, "walker_run", "side", SMOKE_IMITATE)
+    first = runner.imitate(run, "walker_run", "side", SMOKE_IMITATE)
     path = os.path.join(run, "checkpoint.pt")
     ckpt = torch.load(path, weights_only=True)
     assert {r["weights"] for r in first} == {rundir.weights_id(ckpt)} and first[0]["weights"].startswith("6:")
-    assert goal_inference.imitate(run, "walker_run", "side", SMOKE_IMITATE) == []  # the same agent: nothing runs again
+    assert runner.imitate(run, "walker_run", "side", SMOKE_IMITATE) == []  # the same agent: nothing runs again
     ckpt["models"]["actor"] = {k: v + 1e-3 for k, v in ckpt["models"]["actor"].items()}  # as a resumed training would
     torch.save(ckpt, path)
-    second = goal_inference.imitate(run, "walker_run", "side", SMOKE_IMITATE)
+    second = runner.imitate(run, "walker_run", "side", SMOKE_IMITATE)
     assert len(second) == len(first) and {r["weights"] for r in second} == {rundir.weights_id(ckpt)} != {first[0]["weights"]}
 
 
@@ -790,13 +791,13 @@ def test_a_run_in_training_is_not_imitated(smoke_run, tmp_path):
         with open(os.path.join(run, "lock"), "w") as f:
             f.write(str(trainer.pid))
         with pytest.raises(ValueError, match=rf"is being trained now by process {trainer.pid} .*: its checkpoint is not the final agent"):
-            goal_inference.imitate(run, "walker_run", "side", SMOKE_IMITATE)
+            runner.imitate(run, "walker_run", "side", SMOKE_IMITATE)
         with pytest.raises(ValueError, match="is being trained now"):
             tables.run_table(run, SMOKE_IMITATE)
     finally:
         trainer.kill()
         trainer.wait()
-    assert len(goal_inference.imitate(run, "walker_run", "side", SMOKE_IMITATE)) == 2  # the trainer gone: its stale lock is no obstacle
+    assert len(runner.imitate(run, "walker_run", "side", SMOKE_IMITATE)) == 2  # the trainer gone: its stale lock is no obstacle
 
 
 def test_two_files_scoring_one_evaluation_differently_are_named(tmp_path):

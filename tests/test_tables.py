@@ -11,6 +11,7 @@ import numpy as np
 import goal_inference
 import presets
 import rundir
+import runner
 import tables
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
@@ -59,8 +60,8 @@ def test_table_keeps_finished_cells(smoke_run, tmp_path):
 def test_the_zero_shot_columns_depend_on_the_evaluation_alone():
     """A GIIL-ZS row's config is the evaluation's (episodes and steps); GIIL-FT's adds the finetuning's, not the seeds."""
     oc = goal_inference.online.OnlineConfig()
-    assert goal_inference.result_config(SMOKE, "GIIL-ZS", oc) == {"eval_episodes": SMOKE.eval_episodes, "eval_steps": SMOKE.eval_steps}
-    assert "seeds" not in goal_inference.result_config(SMOKE, "GIIL-FT", oc) and goal_inference.result_config(SMOKE, "GIIL-FT", oc)["goal_lr"] == SMOKE.goal_lr
+    assert runner.result_config(SMOKE, "GIIL-ZS", oc) == {"eval_episodes": SMOKE.eval_episodes, "eval_steps": SMOKE.eval_steps}
+    assert "seeds" not in runner.result_config(SMOKE, "GIIL-FT", oc) and runner.result_config(SMOKE, "GIIL-FT", oc)["goal_lr"] == SMOKE.goal_lr
 
 
 def test_shards_together_make_the_whole_table_once(smoke_run, tmp_path, monkeypatch):
@@ -68,7 +69,7 @@ def test_shards_together_make_the_whole_table_once(smoke_run, tmp_path, monkeypa
     last written, shows their cells too."""
     run = str(tmp_path / "run")
     shutil.copytree(smoke_run, run, ignore=shutil.ignore_patterns("results.jsonl"))
-    real, others_ran = goal_inference.imitate, []
+    real, others_ran = runner.imitate, []
 
     def others_finish_meanwhile(run_dir, demo, view, *args, **kwargs):
         if (demo, view) == ("stickman_jump", "diagonal") and not others_ran:
@@ -77,7 +78,7 @@ def test_shards_together_make_the_whole_table_once(smoke_run, tmp_path, monkeypa
                 tables.run_table(run, SMOKE, demos_per_cell=2, shard=(i, 3))
         return real(run_dir, demo, view, *args, **kwargs)
 
-    monkeypatch.setattr(goal_inference, "imitate", others_finish_meanwhile)
+    monkeypatch.setattr(runner, "imitate", others_finish_meanwhile)
     tables.run_table(run, SMOKE, demos_per_cell=2, shard=(0, 3))
     assert others_ran == [5]  # cells 0, 3, ..., 12 of shard 0 were done when the others ran
     rows = [json.loads(line) for line in open(os.path.join(run, "results.jsonl"))]
@@ -92,7 +93,7 @@ def test_shards_split_the_settings_asked_for(smoke_run, tmp_path, monkeypatch):
     shutil.copytree(smoke_run, run, ignore=shutil.ignore_patterns("results.jsonl"))
     first, second = [], []
     for i, ran in enumerate((first, second)):
-        monkeypatch.setattr(goal_inference, "imitate", lambda run_dir, demo, view, *args, **kwargs: ran.append((demo, view)))
+        monkeypatch.setattr(runner, "imitate", lambda run_dir, demo, view, *args, **kwargs: ran.append((demo, view)))
         tables.run_table(run, SMOKE, settings=("SE-CV", "CE-CV"), demos_per_cell=2, shard=(i, 2))
     assert len(first) == len(second) == 4 and len(set(first + second)) == 8
     assert {view for _, view in first + second} == {"diagonal"}  # SE-CV and CE-CV are the diagonal view's settings

@@ -1,0 +1,134 @@
+"""Phase 2's harness, under imitate.py (one demo folder) and tables.py (every cell): a demo folder's rows in
+runs/<name>/results.jsonl (each naming the agent's weights and the settings it depends on), resumed from them, its videos
+and plots, and the flags of ImitateConfig and OnlineConfig. The method it runs is goal_inference.py (Eq. 5 and the
+goal searches' registry, SEARCHES); missing demos of the body x task imitated are collected first (collect.py).
+"""
+import dataclasses
+import os
+import re
+import time
+
+import numpy as np
+import torch
+from tqdm import tqdm
+
+import checkpoint
+import collect
+import envs
+import evaluate
+import goal_inference
+import online
+import ot_reward
+import presets
+import rundir
+from video_encoder import check_same_encoder
+
+
+def result_config(ic, method, oc):
+    """The settings a row of `method` depends on: evaluation alone for the zero-shot columns, the search's own too."""
+    return {k: getattr(ic, k) for k in goal_inference.EVALUATION_FIELDS} if method in goal_inference.ZERO_SHOT else goal_inference.SEARCHES[method].config(ic, oc)
+
+
+def done_here(rows, demo, view, returns, ic, oc, weights):
+    """The (method, seed) pairs of a cell's rows that count (rundir.finished) under these settings and weights."""
+    configs = {m: result_config(ic, m, oc) for m in goal_inference.METHODS}
+    return {(r["method"], r["seed"]) for r in rundir.finished(rows, demo, view, returns, configs, weights)}
+
+
+def imitate(run_dir, demo, view, ic, searches=(), oc=None, zero_shot=True, done=None):
+    """For one demo folder: GIIL-ZS on every demo (unless not zero_shot), then each goal search named (goal_inference.SEARCHES' keys)
+    for its seeds, each seed beside GIIL-ZS (demo 0) on the same evaluation seeds. Appends each evaluation to
+    runs/<name>/results.jsonl, each row with the agent's weights (weights_id), and returns the rows. done:
+    (method, seed) pairs not run again (tables.py); None: those results.jsonl has for these demos, settings and weights
+    (a rerun after Ctrl-C goes on, appending no duplicates; a retrained agent runs again)."""
+    rundir.check_flags(ic)
+    oc = oc or online.OnlineConfig(**presets.PRESETS["online"][ic.preset])
+    device = "cuda" if torch.cuda.is_available() else "cpu"
+    rundir.not_training(run_dir)
+    cfgs, models, ckpt = checkpoint.load_run(run_dir, device)
+    tc, weights = cfgs["train"], rundir.weights_id(ckpt)
+    rundir.fast_matmul()  # oneDNN where it is faster and still fp32 (rundir.py)
+    folder = checkpoint.demo_folder(cfgs, demo, view)
+    demo_body, task = envs.parse_demo(demo)
+    demos = collect.load_folder(folder, ("pixels", "p"))  # one collection: every demo of one length
+    if "GIIL-FT" in searches and len(demos[0]["p"]) < cfgs["ac"].horizon + 2:
+        raise ValueError(f"{folder}: demos of {len(demos[0]['p'])} steps are too short for imagined segments of {cfgs['ac'].horizon}; collect longer ones")
+    for d in demos:
+        check_same_encoder(ckpt["encoder"], d["encoder"], d["path"])
+    demo_returns = [round(d["return"], 3) for d in demos]  # identifies this D_demo: rows of older demos do not count
+    where = envs.setting(tc.env, demo_body, view)
+    out_dir, results_path = rundir.no_link(os.path.join(run_dir, "imitate")), os.path.join(run_dir, "results.jsonl")
+    os.makedirs(out_dir, exist_ok=True)
+    if done is None:
+        done = done_here(rundir.load_results(run_dir), demo, view, demo_returns, ic, oc, weights)
+        if done:
+            print(f"{results_path} has {len(done)} of these evaluations (these demos and settings): kept, not run again")
+    done, rows = set(done), []  # done grows as this call evaluates: the searches share their GIIL-ZS (demo 0) seeds
+
+    def evaluate_goal(method, seed, goal, k, t0, **extra):
+        """eval_episodes episodes at once with goal (F,), environment seeds 20000 + 100 seed + e: a search's seed s and
+        GIIL-ZS (demo 0) seed s meet the same start states. Seed 0's median-scoring episode (a representative one, its
+        index in the row's video_episode) is written as a video beside demo k, but for GIIL-ZS (demo 0): its seed 0 is
+        GIIL-ZS's demo 0, goal and start alike, already written."""
+        render = bool(ic.video) and seed == 0 and method != "GIIL-ZS (demo 0)"
+        env_list = [envs.make_env(tc.env, task) for _ in range(ic.eval_episodes)]
+        returns, frames = evaluate.run_episodes(env_list, models, goal[None].expand(ic.eval_episodes, -1), ic.eval_steps,
+                                                cfgs["wm"].obs, 20_000 + 100 * seed, render)
+        scores = [evaluate.episode_score(task, r, ic.eval_steps) for r in returns]
+        if render:
+            name = re.sub(r"[^A-Za-z0-9-]+", "_", method)  # GIIL-ZS, GIIL-FT, GIIL-online: no shell quoting needed
+            extra["video_episode"] = int(np.argsort(scores)[len(scores) // 2])
+            evaluate.write_video(os.path.join(out_dir, f"{demo}_{view}_{name}_s{seed}.mp4"), demos[k]["pixels"], frames[extra["video_episode"]])
+        row = {"agent": tc.env, "demo": demo, "view": view, "task": task, "setting": where, "method": method, "seed": seed,
+               "score": float(np.mean(scores)), "episode_scores": scores, "time": round(time.time() - t0, 1), "demo_returns": demo_returns,
+               "config": result_config(ic, method, oc), "weights": weights, **extra}
+        rundir.append_jsonl(results_path, row)
+        rows.append(row)
+        done.add((method, seed))
+
+    with torch.no_grad():
+        goals = [models["goal_vae"].goal(torch.as_tensor(d["p"][-1], device=device)) for d in demos]  # GIIL-ZS: g = q(s | p_T)
+    for k, goal in enumerate(tqdm(goals if zero_shot else [], desc=f"GIIL-ZS {demo} {view}")):
+        if ("GIIL-ZS", k) not in done:
+            evaluate_goal("GIIL-ZS", k, goal, k, time.time())  # each row its own time: a table's cost is the sum
+    cell = goal_inference.Cell(models, cfgs, ic, oc, ot_reward.OTConfig(**presets.PRESETS["ot"][ic.preset]), task, demos, goals, device)
+    for method in searches:
+        for seed in range(goal_inference.SEARCHES[method].seeds(ic, oc)):  # each seed independent of the others: its own RNG seeds
+            if ("GIIL-ZS (demo 0)", seed) not in done:
+                evaluate_goal("GIIL-ZS (demo 0)", seed, goals[0], 0, time.time())
+            if (method, seed) not in done:
+                t0 = time.time()  # the search's time: the search and its evaluation
+                goal, k, extra = goal_inference.SEARCHES[method].search(cell, seed)
+                evaluate_goal(method, seed, goal, k, t0, **extra)
+    if "GIIL-online" in searches and zero_shot:  # the curve of the goal chosen after each real episode (its GIIL-ZS score)
+        counted = rundir.finished(rundir.load_results(run_dir), demo, view, demo_returns, {m: result_config(ic, m, oc) for m in goal_inference.METHODS}, weights)
+        print(f"wrote {online.plot_curves(counted, os.path.join(out_dir, f'{demo}_{view}_online_curve.png'))}")
+    for method in goal_inference.METHODS:
+        scores = [r["score"] for r in rows if r["method"] == method]
+        if scores:
+            print(f"{method} {tc.env} imitating {demo} ({view} view, {where}): normalised score {np.mean(scores):.1f} +- "
+                  f"{evaluate.stderr(scores):.1f} over {len(scores)} {'demos' if method == 'GIIL-ZS' else 'seeds'} x {ic.eval_episodes} episodes")
+    print(f"appended to {results_path}; videos in {out_dir}")
+    return rows
+
+
+def config_flags(parser):
+    """--<field> of every goal_inference.ImitateConfig field and --online-<field> of OnlineConfig's (the preset's value unless given);
+    parse_config and parse_online read them back."""
+    presets.config_flags(parser, goal_inference.ImitateConfig, choices=goal_inference.CHOICES)
+    presets.config_flags(parser, online.OnlineConfig, "online-", "online_")
+
+
+def parse_config(args):
+    """-> (the goal_inference.ImitateConfig of the preset and the flags given, the fields given)."""
+    given = {f.name: getattr(args, f.name) for f in dataclasses.fields(goal_inference.ImitateConfig) if getattr(args, f.name) is not None}
+    return goal_inference.ImitateConfig(**{**presets.PRESETS["imitate"][given.get("preset", "cpu")], **given}), given
+
+
+def parse_online(args, preset):
+    """-> (GIIL-online's OnlineConfig of the preset and the --online-* flags given, the fields given)."""
+    given = {f.name: getattr(args, "online_" + f.name) for f in dataclasses.fields(online.OnlineConfig)
+             if getattr(args, "online_" + f.name, None) is not None}
+    oc = online.OnlineConfig(**{**presets.PRESETS["online"][preset], **given})
+    rundir.check_flags(oc, "online-")
+    return oc, given
