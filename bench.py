@@ -66,6 +66,7 @@ def component_updates(preset="cpu", obs_dim=24, action_dim=6, p_dim=512, device=
     import policy
     import world_model as W
     from presets import PRESETS
+    from tests.fixtures import random_batch
 
     cfg = {name: checkpoint.COMPONENTS[name][0](**PRESETS[name][preset]) for name in ("wm", "goal", "dist", "ac", "cloning")}
     obs_shape = obs_dim if cfg["wm"].obs == "state" else (64, 64, 3)
@@ -77,7 +78,7 @@ def component_updates(preset="cpu", obs_dim=24, action_dim=6, p_dim=512, device=
     return_norm = policy.ReturnNorm(cfg["ac"].return_norm_decay)
     for m in (wm, vae, dist_net, actor, critic, slow_critic, return_norm):
         m.to(device)
-    batch = {k: v.to(device) for k, v in W.random_batch(cfg["wm"].obs, obs_shape, action_dim, cfg["wm"].batch, cfg["wm"].seq_len, p_dim).items()}
+    batch = {k: v.to(device) for k, v in random_batch(cfg["wm"].obs, obs_shape, action_dim, cfg["wm"].batch, cfg["wm"].seq_len, p_dim).items()}
     with torch.no_grad():
         post, _ = wm.observe(batch[cfg["wm"].obs], batch["action"], batch["is_first"])
         post_feat, goal_feat = wm.feat(post), vae.goal(batch["p"])
@@ -162,6 +163,7 @@ def bench_world_models(variants=(("Gaussian z (cpu preset)", {}), ("categorical 
     import goal_vae
     import rundir
     import world_model as W
+    from tests.fixtures import random_batch
 
     torch.set_num_threads(1)
     rundir.fast_matmul()
@@ -169,7 +171,7 @@ def bench_world_models(variants=(("Gaussian z (cpu preset)", {}), ("categorical 
     for name, overrides in variants:
         wm = W.WorldModel(W.WorldModelConfig(**overrides), 24, 6)
         vae = goal_vae.GoalVAE(goal_vae.GoalVAEConfig(), 512, wm.cfg.deter, wm.latent)
-        batch = W.random_batch("state", 24, 6, wm.cfg.batch, wm.cfg.seq_len, p_dim=512)
+        batch = random_batch("state", 24, 6, wm.cfg.batch, wm.cfg.seq_len, p_dim=512)
         opt = torch.optim.Adam([*wm.parameters(), *vae.parameters()], lr=3e-4)
 
         def update(wm=wm, vae=vae, batch=batch, opt=opt):

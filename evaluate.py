@@ -95,12 +95,42 @@ def write_video(path, demo_frames, agent_frames):
 
 
 @torch.no_grad()
+def open_loop(wm, batch, context):
+    """Ours, for Eq. 2: observe steps [0, context), imagine [context, T) with the recorded actions from the last
+    posterior state (prior modes, no sampling) -> imagined feats (B, T - context, F) and keep (B,): False for segments
+    with an episode start inside the imagined part."""
+    obs, action, is_first = batch[wm.cfg.obs], batch["action"], batch["is_first"]
+    assert 0 < context < action.shape[1]
+    post, _ = wm.observe(obs[:, :context], action[:, :context], is_first[:, :context])
+    return replay(wm, {k: v[:, -1] for k, v in post.items()}, action[:, context:]), ~is_first[:, context:].any(1)
+
+
+def replay(wm, state, actions, sample=False):
+    """The prior rolled open loop from `state` (N, .) with recorded actions (N, H, A) -> imagined feats (N, H, F)
+    (prior modes unless sample)."""
+    feats = []
+    for a in actions.unbind(1):
+        state = wm.img_step(state, a, sample=sample)
+        feats.append(wm.feat(state))
+    return torch.stack(feats, 1)
+
+
+def open_loop_error(wm, batch, context, imagined=None):
+    """The decoder's mean squared error per observation element on the open-loop imagined steps (open_loop,
+    or `imagined`, its output for this batch when already computed), in the decoder's target space (symlog
+    for states, [-0.5, 0.5] for pixels); NaN if no segment is kept."""
+    feats, keep = imagined or open_loop(wm, batch, context)
+    err = wm._decode_raw(feats) - wm._target(batch[wm.cfg.obs][:, context:])
+    return err[keep].pow(2).mean().item() if keep.any() else float("nan")
+
+
+@torch.no_grad()
 def open_loop_metrics(wm, vae, batch, context):
     """Imagination quality: the world model's open-loop error (Eq. 2's decoder) and the cosine between the goal decoder's
     features of the open-loop imagined states and the true p_t, what phase 2's OT reward reads (0 to 1, 1 = exact)."""
-    feats, keep = imagined = wm.open_loop(batch, context)  # imagined once, read by both decoders
+    feats, keep = imagined = open_loop(wm, batch, context)  # imagined once, read by both decoders
     cos = (vae.decode(feats) * batch["p"][:, context:]).sum(-1)[keep]
-    return {"open_loop": wm.open_loop_error(batch, context, imagined), "open_loop_p_cos": cos.mean().item() if len(cos) else float("nan")}
+    return {"open_loop": open_loop_error(wm, batch, context, imagined), "open_loop_p_cos": cos.mean().item() if len(cos) else float("nan")}
 
 
 @torch.no_grad()

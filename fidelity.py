@@ -90,7 +90,7 @@ def measure(wm, vae, episodes, starts=STARTS, ahead=AHEAD, seed=0):
     state = {k: torch.cat([v[:, t0] for t0 in starts]) for k, v in post.items()}  # (E * S, .), start-major
     index = torch.tensor(starts, device=device).repeat_interleave(len(obs))[:, None] + torch.arange(1, ahead + 1, device=device)
     row = torch.arange(len(obs), device=device).repeat(len(starts))[:, None]  # (E * S, 1): each start's episode
-    imagined = wm.replay(state, action[row, index])  # (E * S, ahead, F)
+    imagined = evaluate.replay(wm, state, action[row, index])  # (E * S, ahead, F)
     space = wm._target(obs)  # (E, L, ...): observations in the decoder's space
     target = space[row, index]  # (E * S, ahead, ...)
     last = space[row[:, 0], index[:, 0] - 1][:, None]  # (E * S, 1, ...): o_t0, held

@@ -28,11 +28,15 @@ import pickle
 import re
 import signal
 import sys
+import tempfile
 
 import numpy as np
 import torch
 
 import envs
+
+UMASK = os.umask(0o022)  # the process's umask, read once (os.umask sets it as it reads it) and put back
+os.umask(UMASK)
 
 
 def check_flags(config, prefix=""):
@@ -334,14 +338,19 @@ def atomic_write(path, write, by_name=False):
     `path`, so a killed run leaves the old file or the new one, never half of one. The temporary file is named after
     the writer's pid, so two processes writing the same file (two runs side by side collecting one D_demo) each rename
     a whole file of their own; a killed writer's leftover temporary file goes at the next write of `path`. by_name:
-    write(name) gets the temporary file's name instead, ending in path's extension (cv2.VideoWriter picks the format by it)."""
-    os.makedirs(os.path.dirname(no_link(path)) or ".", exist_ok=True)
-    tmp = f"{path}.{os.getpid()}.tmp" + (os.path.splitext(path)[1] if by_name else "")
+    write(name) gets the temporary file's name instead, ending in path's extension (cv2.VideoWriter picks the format by it).
+    The temporary file is created anew (O_EXCL) under a name no one can guess beside the pid, so a link planted at a
+    predictable name is never written through."""
+    folder = os.path.dirname(no_link(path)) or "."
+    os.makedirs(folder, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f"{os.path.basename(path)}.{os.getpid()}.", suffix=".tmp" + (os.path.splitext(path)[1] if by_name else ""), dir=folder)
     try:
+        os.fchmod(fd, 0o666 & ~UMASK)  # what open() would have made: mkstemp's file is the owner's alone
         if by_name:
+            os.close(fd)
             write(tmp)
         else:
-            with open(tmp, "wb") as f:
+            with os.fdopen(fd, "wb") as f:
                 write(f)
     except BaseException:  # an error or Ctrl-C half-way: the old file stays, and no temporary one
         with contextlib.suppress(FileNotFoundError):

@@ -149,7 +149,7 @@ def imagined_rows(models, cfgs, body, befores=(15, 40), after=20):
             continue
         e, t = (torch.tensor(v) for v in zip(*events))
         index = (t - before)[:, None] + torch.arange(1, before + after + 1)  # (N, before + after): the steps replayed
-        imagined = wm.replay({k: v[e, t - before] for k, v in post.items()}, action[e[:, None], index])
+        imagined = evaluate.replay(wm, {k: v[e, t - before] for k, v in post.items()}, action[e[:, None], index])
         kinds = {"real": posture[e[:, None], index], "filtered posterior": filtered[e[:, None], index],
                  "imagined, open loop": envs.observed_posture(body, wm.decode(imagined).numpy())}
         for name, p in kinds.items():

@@ -4,6 +4,8 @@ import argparse
 import dataclasses
 
 import pytest
+import torch
+import torch.nn.functional as F
 
 import checkpoint
 import collect
@@ -54,3 +56,19 @@ def kill_at_evaluation(monkeypatch, n):
 
     monkeypatch.setattr(genrl, "evaluate_actor", killed)
     return evaluate_actor
+
+
+def random_batch(obs, obs_shape, action_dim, batch, seq_len, p_dim=64, seed=0):
+    """A batch with collect.py's keys and shapes, filled with noise: for benchmarks and shape tests."""
+    g = torch.Generator().manual_seed(seed)
+    B, T = batch, seq_len
+    if obs == "state":
+        data = {"state": torch.randn(B, T, obs_shape, generator=g)}
+    else:
+        data = {"pixels": torch.randint(0, 256, (B, T, *obs_shape), generator=g, dtype=torch.uint8)}
+    is_first = torch.zeros(B, T, dtype=torch.bool)
+    is_first[:, 0] = True
+    action = torch.rand(B, T, action_dim, generator=g) * 2 - 1
+    action[:, 0] = 0
+    p = F.normalize(torch.randn(B, T, p_dim, generator=g), dim=-1)
+    return {**data, "action": action, "reward": torch.zeros(B, T), "is_first": is_first, "p": p, "episode": torch.arange(B)}

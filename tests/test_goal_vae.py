@@ -7,6 +7,7 @@ from torch.distributions import Independent, Normal, OneHotCategorical, kl_diver
 
 import presets
 import world_model as W
+from tests.fixtures import random_batch
 from goal_vae import GoalVAE, GoalVAEConfig
 
 torch.set_num_threads(1)
@@ -24,7 +25,7 @@ def models(discrete=0):
 def test_goal_vae_passes_no_gradient_to_the_world_model(discrete):
     torch.manual_seed(0)
     world_model, vae = models(discrete)
-    batch = W.random_batch("state", 5, 2, 3, 6, p_dim=D)
+    batch = random_batch("state", 5, 2, 3, 6, p_dim=D)
     _, _, post = world_model.loss(batch)  # post still carries the world model's graph
     loss, _ = vae.loss(batch["p"], post)
     loss.backward()

@@ -8,6 +8,7 @@ from torch.distributions import Normal, TanhTransform, TransformedDistribution
 import policy as P
 import presets
 import world_model as W
+from tests.fixtures import random_batch
 from distance import DistanceConfig, DistanceNet
 
 torch.set_num_threads(1)
@@ -59,7 +60,7 @@ def make_agents(goal_dim=None):
 def test_actor_loss_passes_no_gradient_to_the_world_model():
     torch.manual_seed(0)
     cfg, world_model, dist_net, actor, critic, slow_critic = make_agents()
-    batch = W.random_batch("state", 5, 2, 4, 6)
+    batch = random_batch("state", 5, 2, 4, 6)
     _, _, post = world_model.loss(batch)  # post carries the world model's graph: the start states must cut it
     start, index = P.sample_starts(post, 16)
     post_feat = world_model.feat(post)

@@ -683,6 +683,27 @@ def test_nothing_is_written_through_a_link_in_a_run_folder(tmp_path):
     assert (outside / "rows.jsonl").read_text() == '{"a": 1}\n{"cut' and os.listdir(outside) == ["rows.jsonl"]
 
 
+def test_a_temporary_file_is_never_a_link_planted_at_a_predictable_name(tmp_path):
+    """Links planted at the names a writer's pid would give its temporary files (<file>.<pid>.tmp and the like): the
+    write makes its own file (O_EXCL, a name no one can guess), the link's target is untouched, and the file written is
+    a plain file with the permissions open() gives."""
+    outside = tmp_path / "outside.txt"
+    outside.write_text("kept")
+    run = tmp_path / "run"
+    run.mkdir()
+    for pid in range(os.getpid(), os.getpid() + 50):
+        for name in (f"goal_reaching.json.{pid}.tmp", f"goal_reaching.json.{pid}.tmp.json"):
+            os.symlink(outside, run / name)
+    for by_name in (False, True):
+        write = (lambda name: open(name, "w").write("{}")) if by_name else (lambda f: f.write(b"{}"))
+        rundir.atomic_write(str(run / "goal_reaching.json"), write, by_name=by_name)
+        assert outside.read_text() == "kept" and not os.path.islink(run / "goal_reaching.json")
+        assert (run / "goal_reaching.json").read_text() == "{}"
+    assert oct(os.stat(run / "goal_reaching.json").st_mode & 0o777) == oct(0o666 & ~rundir.UMASK)
+    left = [n for n in os.listdir(run) if n != "goal_reaching.json"]  # planted links (those of dead pids cleared as leftovers)
+    assert all(os.path.islink(run / n) for n in left)  # no temporary file of ours left
+
+
 def test_the_shipped_agents_results_go_to_runs_not_into_its_folder(smoke_run, tmp_path, monkeypatch):
     """Phase 2 on agents/<body> writes to runs/agent_<body> (its checkpoint a link to the agent's); agents/ keeps the weights only."""
     monkeypatch.chdir(tmp_path)

@@ -6,10 +6,11 @@ import torch
 import torch.nn.functional as F
 from torch.distributions import Categorical, Independent, Normal, OneHotCategorical, kl_divergence
 
+import evaluate
 import presets
 import train
 import world_model as W
-from tests.fixtures import train_args
+from tests.fixtures import random_batch, train_args
 
 torch.set_num_threads(1)
 
@@ -85,7 +86,7 @@ def test_shapes_through_observe_imagine_loss(obs, discrete):
     cfg, (B, T, A) = model.cfg, (3, 6, 2)
     Z = cfg.stoch * (discrete or 1)  # the width of z in feat
     assert model.feat_dim == cfg.deter + Z and model.state_keys == ("deter", "stoch") + (("logits",) if discrete else ("mean", "std"))
-    batch = W.random_batch(obs, obs_shape, A, B, T)
+    batch = random_batch(obs, obs_shape, A, B, T)
     post, prior = model.observe(batch[obs], batch["action"], batch["is_first"])
     stat_shapes = {"logits": (B, T, Z)} if discrete else {"mean": (B, T, Z), "std": (B, T, Z)}
     for state in (post, prior):
@@ -103,9 +104,9 @@ def test_shapes_through_observe_imagine_loss(obs, discrete):
     start = {k: v[:, -1] for k, v in post.items()}  # (B, .)
     states, actions = model.imagine(start, lambda f: torch.tanh(f[:, :A]), horizon=4)
     assert {k: tuple(v.shape) for k, v in states.items()} == {k: (B, 5, s[-1]) for k, s in {"deter": (cfg.deter,), "stoch": (Z,), **stat_shapes}.items()}
-    assert model.open_loop(batch, context=3)[0].shape == (B, T - 3, model.feat_dim)
+    assert evaluate.open_loop(model, batch, context=3)[0].shape == (B, T - 3, model.feat_dim)
     assert actions.shape == (B, 4, A) and torch.equal(states["deter"][:, 0], start["deter"])
-    error = model.open_loop_error(batch, context=3)
+    error = evaluate.open_loop_error(model, batch, context=3)
     assert error > 0 and error == error  # finite, not NaN
 
 
@@ -116,7 +117,7 @@ def test_lean_observe_loop_equals_plain_steps(discrete, sample):
     torch.manual_seed(0)
     model, obs_shape = smoke_model(discrete=discrete)
     latent = model.latent
-    batch = W.random_batch("state", obs_shape, 2, 3, 6, seed=1)
+    batch = random_batch("state", obs_shape, 2, 3, 6, seed=1)
     post, prior = model.observe(batch["state"], batch["action"], batch["is_first"], sample=sample)
     for t in range(1, 6):
         step = model.img_step({k: v[:, t - 1] for k, v in post.items()}, batch["action"][:, t], sample=False)
@@ -139,7 +140,7 @@ def test_lean_observe_loop_equals_plain_steps(discrete, sample):
 def test_is_first_resets_the_state():
     torch.manual_seed(0)
     model, obs_shape = smoke_model()
-    batch = W.random_batch("state", obs_shape, 2, 3, 8, seed=2)
+    batch = random_batch("state", obs_shape, 2, 3, 8, seed=2)
     k = 4
     batch["is_first"][:, k] = True  # a new episode starts mid-segment; action[:, k] is non-zero and must be ignored
     assert batch["action"][:, k].abs().sum() > 0
@@ -175,20 +176,20 @@ def test_a_few_updates_lower_the_loss_on_a_learnable_system(discrete, updates):
     g = torch.Generator().manual_seed(0)
     held_out = linear_system(16, 12, g)
 
-    def evaluate():
+    def measure():
         torch.manual_seed(1)
         with torch.no_grad():
             metrics = model.loss(held_out)[1]
-        return metrics["wm_loss"], metrics["recon"], model.open_loop_error(held_out, context=6)
+        return metrics["wm_loss"], metrics["recon"], evaluate.open_loop_error(model, held_out, context=6)
 
-    before = evaluate()
+    before = measure()
     opt = torch.optim.Adam(model.parameters(), lr=3e-3)
     for _ in range(updates):
         loss = model.loss(linear_system(16, 12, g))[0]
         opt.zero_grad()
         loss.backward()
         opt.step()
-    after = evaluate()
+    after = measure()
     assert after[0] < 0.8 * before[0], (before, after)  # Eq. 2's loss (floored by the free nats)
     assert after[1] < 0.3 * before[1], (before, after)  # reconstruction
     assert after[2] < 0.5 * before[2], (before, after)  # open-loop prediction
@@ -200,7 +201,7 @@ def test_overshooting_kl_rolls_the_prior_open_loop_from_posterior_states():
     torch.manual_seed(0)
     model, obs_shape = smoke_model(overshoot=3, overshoot_starts=2)
     B, T = 4, 8
-    batch = W.random_batch("state", obs_shape, 2, B, T)
+    batch = random_batch("state", obs_shape, 2, B, T)
     post, prior = model.observe(batch["state"], batch["action"], batch["is_first"])
     kl = model.overshooting_kl(post, batch["action"], batch["is_first"])
     assert kl.shape == (B * 2, 3) and (kl >= 0).all()
