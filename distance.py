@@ -19,20 +19,17 @@ and the two are weighted equally (contrastive_weight = 1); LEXA instead mixes ~1
 i.e. a weight of about 0.11.
 
 Which goals d is trained on (ours; the paper trains d on pairs of posterior states only). The policy is given
-goals from the goal encoder, g = q(s | p_j) (GIIL-ZS feeds it q(s | p_T) of a demo), and a d trained on posterior
-pairs alone cannot rank those (docs/ablations.md, Phase 1), so -d was flat and Eq. 4 taught the policy nothing.
-With `encoder_goals` (default) every pair is scored twice, with the later state as the world model's posterior
-feat_j and as the goal encoder's g_j of the same frame, against the same Eq. 6 target. The posterior's h_t also
-carries the episode's history, which lets d answer "same trajectory?" instead of "how far?"; g_j is read from an
-8-frame video window and has no such shortcut. contrastive_weight 0.1 in the cpu preset follows LEXA's share of
-negatives (not compared with the paper's equal weight here).
+goals from the goal encoder, g = q(s | p_j) (GIIL-ZS feeds it q(s | p_T) of a demo), which a d trained on posterior
+pairs alone does not rank (docs/ablations.md, Phase 1). With `encoder_goals` (default) every pair is scored twice,
+with the later state as the world model's posterior feat_j and as the goal encoder's g_j of the same frame, against
+the same Eq. 6 target: the posterior's h_t carries the episode's history, which lets d answer "same trajectory?"
+instead of "how far?"; g_j is read from an 8-frame video window and has no such shortcut. contrastive_weight 0.1 in
+the cpu preset follows LEXA's share of negatives.
 
-What d reads (ours, `input`). Even with encoder goals, d read from the full state [h, z] learnt "same trajectory or
-not" and almost nothing of "how far" (docs/ablations.md, Phase 1). In imagination, h continues the start state's history, so
-every near goal looked reached from the first step and -d did not change with what the policy did. LEXA reads an
-embedding of the observation; `input = "obs"` does the same with the world model's own decoder: d reads the decoded
-observation (symlog of the state vector) of s and of g, which holds the body's pose and velocities and no history.
-Measured, it ranked gaps no better than [h, z] (docs/ablations.md, Phase 1). `input = "feat"` is Eq. 7 as written.
+What d reads (ours, `input`). LEXA reads an embedding of the observation; `input = "obs"` does the same with the
+world model's own decoder: d reads the decoded observation (symlog of the state vector) of s and of g, which holds the
+body's pose and velocities and no history (in imagination, h continues the start state's history; docs/ablations.md,
+Phase 1, has what each input measured). `input = "feat"` is Eq. 7 as written.
 
 The td reading (ours, `reading = "td"`; Park et al. 2024, HILP). Eq. 7 labels every pair of states of two episodes 1,
 so d towards a demo's goal, always another episode's state, can only say "not this episode" unless the network
@@ -42,9 +39,8 @@ value: V(s_t, g) <- -(1 + gamma + ... + gamma^(n-1)) + gamma^n V'(s_{t+n}, g), a
 shortest way the data shows), the sum ending where a goal of the same episode is met, V = 0 at s_t's own frame's goal,
 V' a slow copy (`slow_dist`). Goals are the current frame's, a later frame of the segment at a geometric gap, or any
 frame of the batch (GOAL_SHARES), each as the posterior's or the goal encoder's (encoder_goals). Bootstrapping through
-states that look alike stitches episodes together. Measured (docs/results.md, "Does the temporal distance rank
-steps?"; docs/ablations.md, "Eq. 4 alone"): fit on a frozen world model it ranks steps about as Eq. 7 does, and
-Eq. 4 alone trained on it reaches more goals on the walker.
+states that look alike stitches episodes together. What it measured: docs/ablations.md, "Eq. 4 alone", and
+docs/results.md, "Does the temporal distance rank steps?".
 """
 import math
 from dataclasses import dataclass
@@ -71,8 +67,7 @@ class DistanceConfig:
     encoder_goals: int = 1  # 1: also fit d(s_i, g_j) with g_j the goal encoder's goal of frame j (ours); 0: Eq. 7 alone
     input: str = "obs"  # 'obs': d on decoded observations (ours, LEXA's embedding; state obs only); 'feat': on [h, z] (Eq. 7)
     # 'eq7': Eq. 6-7's regression and contrastive terms (the paper; the cpu recipe's); 'td': d = ||phi(s) - phi(g)|| fit
-    # by temporal differences along the data (ours, after HILP, Park et al. 2024; module docstring): Eq. 4 alone on it
-    # 52.5 +- 2.7 against 41.6 +- 1.0 on the walker, 3 seeds (docs/ablations.md); with the cloning not yet measured
+    # by temporal differences along the data (ours, after HILP, Park et al. 2024; module docstring)
     reading: str = "eq7"
     gamma: float = 0.99  # td: discount of the steps counted (HILP)
     tau: float = 0.95  # td: expectile of the value targets (HILP)
@@ -187,19 +182,3 @@ def td_loss(dist_net, slow_net, x, goals, is_first, num, generator=None):
     u = target - value
     loss = (torch.where(u < 0, 1 - cfg.tau, cfg.tau) * u**2).mean()
     return loss, {"dist_loss": loss.item(), "dist_value": value.mean().item()}
-
-
-@torch.no_grad()
-def distance_profile(dist_net, feat, goal_feat, is_first, t0=10, ahead=(1, 5, 15, 30)):
-    """The diagnostic of the module docstring: mean d(s_t0, goal) for goals `ahead` steps later in the same segment, as
-    posterior feats and as encoder goals, and for another segment's frame (the last value). feat, goal_feat (B, T, F),
-    is_first (B, T) -> {'d_post': [...], 'd_enc': [...]}, each len(ahead) + 1 floats (NaN where no segment qualifies)."""
-    B, T, _ = feat.shape
-    assert t0 + max(ahead) < T, (t0, ahead, T)
-    whole = ~is_first[:, t0 + 1 :].any(1)  # segments with no episode start after t0
-    out = {}
-    for name, goal in (("d_post", feat), ("d_enc", goal_feat)):
-        d = [dist_net(feat[whole, t0], goal[whole, t0 + k]).mean().item() for k in ahead]
-        d.append(dist_net(feat[:, t0], goal.roll(1, 0)[:, t0 + ahead[0]]).mean().item())  # another segment's frame
-        out[name] = d
-    return out

@@ -134,6 +134,22 @@ def open_loop_metrics(wm, vae, batch, context):
 
 
 @torch.no_grad()
+def distance_profile(dist_net, feat, goal_feat, is_first, t0=10, ahead=(1, 5, 15, 30)):
+    """Ours, a diagnostic of Eq. 7's d (distance.py): mean d(s_t0, goal) for goals `ahead` steps later in the same segment, as
+    posterior feats and as encoder goals, and for another segment's frame (the last value). feat, goal_feat (B, T, F),
+    is_first (B, T) -> {'d_post': [...], 'd_enc': [...]}, each len(ahead) + 1 floats (NaN where no segment qualifies)."""
+    B, T, _ = feat.shape
+    assert t0 + max(ahead) < T, (t0, ahead, T)
+    whole = ~is_first[:, t0 + 1 :].any(1)  # segments with no episode start after t0
+    out = {}
+    for name, goal in (("d_post", feat), ("d_enc", goal_feat)):
+        d = [dist_net(feat[whole, t0], goal[whole, t0 + k]).mean().item() for k in ahead]
+        d.append(dist_net(feat[:, t0], goal.roll(1, 0)[:, t0 + ahead[0]]).mean().item())  # another segment's frame
+        out[name] = d
+    return out
+
+
+@torch.no_grad()
 def reachable_goal_reward(wm, dist_net, actor, post, goal_feat, is_first, horizon, seed=0):
     """Eq. 4's imagined goal reward -d(s_k, g) on goals the agent can reach (ours, a diagnostic): from s_t0 (t0 = 10,
     less in short segments) of each batch segment with no episode start after t0, imagine `horizon` steps towards
@@ -289,7 +305,7 @@ def learning_curve(run_dir):
             ax.legend(fontsize=8)
     fig.tight_layout()
     path = os.path.join(run_dir, "learning_curve.png")
-    fig.savefig(path, dpi=80)
+    rundir.atomic_write(path, lambda name: fig.savefig(name, dpi=80), by_name=True)  # never through a link
     plt.close(fig)
     return path
 

@@ -178,7 +178,7 @@ def plot(rows, path):
     np.atleast_1d(axes)[0].set_ylabel("cos(p_hat, p_t): imagined, filtered --")
     np.atleast_1d(axes)[0].legend(fontsize=7)
     fig.tight_layout()
-    fig.savefig(path, dpi=80)
+    rundir.atomic_write(path, lambda name: fig.savefig(name, dpi=80), by_name=True)  # never through a link
     plt.close(fig)
     return path
 

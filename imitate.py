@@ -8,6 +8,7 @@ import argparse
 import checkpoint
 import envs
 import rundir
+import runner
 from goal_inference import FINETUNE_FIELDS, SEARCHES
 from runner import config_flags, imitate, parse_config, parse_online
 
@@ -36,7 +37,7 @@ def main():
     # before anything runs: the run's agent is the body --env names (with --run) and what its folder's name says
     rundir.run_checkpoint(run, env=args.env)
     run = checkpoint.work_folder(run)
-    lock = rundir.cell_lock(run, args.demo, args.view)
+    lock = runner.cell_lock(run, args.demo, args.view)
     with rundir.claim(lock) as other:  # as a tables.py cell: one process at a time
         if other:
             raise ValueError(f"process {other} is running {args.demo} ({args.view} view) on {run} now ({lock}): wait for it to end; "

@@ -128,7 +128,7 @@ def plot_curves(rows, path):
     ax.set_title(f"GIIL-online, {rows[0]['agent']} (dotted: GIIL-ZS, the mean over the demos' goals)", fontsize=9)
     ax.legend(fontsize=7)
     fig.tight_layout()
-    fig.savefig(path, dpi=90)
+    rundir.atomic_write(path, lambda name: fig.savefig(name, dpi=90), by_name=True)  # never through a link
     plt.close(fig)
     return path
 

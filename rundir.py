@@ -9,10 +9,10 @@ run_main      an entry point's main(): bad input, Ctrl-C and SIGTERM each end in
 trim_jsonl    on resume, metrics.jsonl keeps only the rows up to the checkpoint's update (a killed run logged past it)
 read_jsonl    the rows of a .jsonl log; a last line cut short by a kill is dropped, any other bad line is an error
 append_jsonl  one row, on a line of its own after such a cut line
-load_results, finished   phase 2's result rows (runs/<name>/results.jsonl) and which of them count for a cell
 fast_matmul   fp32 matmuls through oneDNN where that is faster and still fp32 (checked on this CPU)
 threads_flag  --threads of imitate.py and the baselines: this process's torch threads, not the run's training ones
-atomic_write  every file the project writes, videos too: a temporary file per writer, renamed onto the path (never half a file)
+atomic_write  every file the project writes, videos too: a temporary file per writer (created anew, under a name no one
+              can guess), renamed onto the path (never half a file)
 load_checkpoint, plain, generator   checkpoints that load with torch.load(weights_only=True), and only so
 weights_id    the identity of a checkpoint's agent, which every result row carries
 """
@@ -154,29 +154,6 @@ def append_jsonl(path, row):
         f.write((json.dumps(row) + "\n").encode())
 
 
-def load_results(run_dir):
-    """The latest row per row_key of runs/<name>/results.jsonl: a rerun replaces its own earlier result, never one made
-    with other demos, settings or weights."""
-    return latest(read_jsonl(os.path.join(run_dir, "results.jsonl")))
-
-
-def row_key(r):
-    """What tells two result rows apart: cell, method, seed, demos (their returns), settings and the agent's weights."""
-    return (r["demo"], r["view"], r["method"], r["seed"], json.dumps(r.get("demo_returns")), json.dumps(r.get("config")), r.get("weights"))
-
-
-def latest(rows_in):
-    """The last of the rows with the same row_key (load_results)."""
-    return list({row_key(r): r for r in rows_in}.values())
-
-
-def finished(rows, demo, view, returns, configs, weights):
-    """A cell's rows that count: made by the agent `weights` (weights_id) with the demos now on disk (their
-    returns) and, for a method of `configs`, with the settings configs[method] (goal_inference.result_config)."""
-    return [r for r in rows if r["demo"] == demo and r["view"] == view and r.get("demo_returns") == returns
-            and r.get("weights") == weights and r["method"] in configs and r.get("config") == configs[r["method"]]]
-
-
 def not_training(run_dir):
     """A one-line ValueError while another live process trains run_dir (holds its lock): its checkpoint is a
     mid-training one, not the agent."""
@@ -188,29 +165,6 @@ def not_training(run_dir):
     if pid != os.getpid() and alive(pid):
         raise ValueError(f"{run_dir} is being trained now by process {pid} ({path}): its checkpoint is not the final agent; "
                          f"wait for the training to end, then run this again")
-
-
-def cell_lock(run_dir, demo, view):
-    """The lock file of a cell while a process runs it (claim; tables.py's cells, imitate.py --demo)."""
-    return os.path.join(no_link(os.path.join(run_dir, "imitate")), f"{demo}_{view}.lock")
-
-
-def parse_shard(text):
-    """--shard I/N -> (I, N); None: (0, 1), the whole."""
-    try:
-        shard = tuple(int(x) for x in (text or "0/1").split("/"))
-        assert len(shard) == 2 and 0 <= shard[0] < shard[1]
-    except (ValueError, AssertionError):
-        raise ValueError(f"--shard {text}: pass I/N with 0 <= I < N, e.g. 0/4") from None
-    return shard
-
-
-def parse_settings(text):
-    """--settings SE-SV,CE-CV -> the list; an unknown one names the valid ones."""
-    settings = text.split(",")
-    if unknown := [w for w in settings if w not in envs.SETTINGS]:
-        raise ValueError(f"unknown setting(s) {', '.join(unknown)}: choose from {', '.join(envs.SETTINGS)}")
-    return settings
 
 
 def fast_matmul():

@@ -1,9 +1,11 @@
 """Phase 2's harness, under imitate.py (one demo folder) and tables.py (every cell): a demo folder's rows in
 runs/<name>/results.jsonl (each naming the agent's weights and the settings it depends on), resumed from them, its videos
-and plots, and the flags of ImitateConfig and OnlineConfig. The method it runs is goal_inference.py (Eq. 5 and the
+and plots, and the flags of ImitateConfig and OnlineConfig; a cell's lock (cell_lock), which rows count for it (load_results,
+finished, row_key) and the --shard / --settings of tables.py and the baselines. The method it runs is goal_inference.py (Eq. 5 and the
 goal searches' registry, SEARCHES); missing demos of the body x task imitated are collected first (collect.py).
 """
 import dataclasses
+import json
 import os
 import re
 import time
@@ -32,7 +34,7 @@ def result_config(ic, method, oc):
 def done_here(rows, demo, view, returns, ic, oc, weights):
     """The (method, seed) pairs of a cell's rows that count (rundir.finished) under these settings and weights."""
     configs = {m: result_config(ic, m, oc) for m in goal_inference.METHODS}
-    return {(r["method"], r["seed"]) for r in rundir.finished(rows, demo, view, returns, configs, weights)}
+    return {(r["method"], r["seed"]) for r in finished(rows, demo, view, returns, configs, weights)}
 
 
 def imitate(run_dir, demo, view, ic, searches=(), oc=None, zero_shot=True, done=None):
@@ -60,7 +62,7 @@ def imitate(run_dir, demo, view, ic, searches=(), oc=None, zero_shot=True, done=
     out_dir, results_path = rundir.no_link(os.path.join(run_dir, "imitate")), os.path.join(run_dir, "results.jsonl")
     os.makedirs(out_dir, exist_ok=True)
     if done is None:
-        done = done_here(rundir.load_results(run_dir), demo, view, demo_returns, ic, oc, weights)
+        done = done_here(load_results(run_dir), demo, view, demo_returns, ic, oc, weights)
         if done:
             print(f"{results_path} has {len(done)} of these evaluations (these demos and settings): kept, not run again")
     done, rows = set(done), []  # done grows as this call evaluates: the searches share their GIIL-ZS (demo 0) seeds
@@ -101,7 +103,7 @@ def imitate(run_dir, demo, view, ic, searches=(), oc=None, zero_shot=True, done=
                 goal, k, extra = goal_inference.SEARCHES[method].search(cell, seed)
                 evaluate_goal(method, seed, goal, k, t0, **extra)
     if "GIIL-online" in searches and zero_shot:  # the curve of the goal chosen after each real episode (its GIIL-ZS score)
-        counted = rundir.finished(rundir.load_results(run_dir), demo, view, demo_returns, {m: result_config(ic, m, oc) for m in goal_inference.METHODS}, weights)
+        counted = finished(load_results(run_dir), demo, view, demo_returns, {m: result_config(ic, m, oc) for m in goal_inference.METHODS}, weights)
         print(f"wrote {online.plot_curves(counted, os.path.join(out_dir, f'{demo}_{view}_online_curve.png'))}")
     for method in goal_inference.METHODS:
         scores = [r["score"] for r in rows if r["method"] == method]
@@ -132,3 +134,49 @@ def parse_online(args, preset):
     oc = online.OnlineConfig(**{**presets.PRESETS["online"][preset], **given})
     rundir.check_flags(oc, "online-")
     return oc, given
+
+
+def load_results(run_dir):
+    """The latest row per row_key of runs/<name>/results.jsonl: a rerun replaces its own earlier result, never one made
+    with other demos, settings or weights."""
+    return latest(rundir.read_jsonl(os.path.join(run_dir, "results.jsonl")))
+
+
+def row_key(r):
+    """What tells two result rows apart: cell, method, seed, demos (their returns), settings and the agent's weights."""
+    return (r["demo"], r["view"], r["method"], r["seed"], json.dumps(r.get("demo_returns")), json.dumps(r.get("config")), r.get("weights"))
+
+
+def latest(rows_in):
+    """The last of the rows with the same row_key (load_results)."""
+    return list({row_key(r): r for r in rows_in}.values())
+
+
+def finished(rows, demo, view, returns, configs, weights):
+    """A cell's rows that count: made by the agent `weights` (weights_id) with the demos now on disk (their
+    returns) and, for a method of `configs`, with the settings configs[method] (result_config)."""
+    return [r for r in rows if r["demo"] == demo and r["view"] == view and r.get("demo_returns") == returns
+            and r.get("weights") == weights and r["method"] in configs and r.get("config") == configs[r["method"]]]
+
+
+def cell_lock(run_dir, demo, view):
+    """The lock file of a cell while a process runs it (claim; tables.py's cells, imitate.py --demo)."""
+    return os.path.join(rundir.no_link(os.path.join(run_dir, "imitate")), f"{demo}_{view}.lock")
+
+
+def parse_shard(text):
+    """--shard I/N -> (I, N); None: (0, 1), the whole."""
+    try:
+        shard = tuple(int(x) for x in (text or "0/1").split("/"))
+        assert len(shard) == 2 and 0 <= shard[0] < shard[1]
+    except (ValueError, AssertionError):
+        raise ValueError(f"--shard {text}: pass I/N with 0 <= I < N, e.g. 0/4") from None
+    return shard
+
+
+def parse_settings(text):
+    """--settings SE-SV,CE-CV -> the list; an unknown one names the valid ones."""
+    settings = text.split(",")
+    if unknown := [w for w in settings if w not in envs.SETTINGS]:
+        raise ValueError(f"unknown setting(s) {', '.join(unknown)}: choose from {', '.join(envs.SETTINGS)}")
+    return settings

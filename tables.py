@@ -234,15 +234,15 @@ def run_table(run_dir, ic, oc=None, settings=SETTINGS, shard=(0, 1), methods=("f
         run_now = (task, where) in runs_here
         # one process at a time runs a cell (its lock file, rundir.claim): a second table process without --shard, or
         # with shards that overlap, skips the cells another one is running; their rows count once written
-        with rundir.claim(rundir.cell_lock(run_dir, demo, view)) if run_now else contextlib.nullcontext() as other:
+        with rundir.claim(runner.cell_lock(run_dir, demo, view)) if run_now else contextlib.nullcontext() as other:
             if other:
-                print(f"{demo} ({view} view): process {other} is running this cell now ({rundir.cell_lock(run_dir, demo, view)}): skipped here")
+                print(f"{demo} ({view} view): process {other} is running this cell now ({runner.cell_lock(run_dir, demo, view)}): skipped here")
             run_now = run_now and not other
             folder = checkpoint.demo_folder(cfgs, demo, view) if run_now else os.path.join(cfgs["train"].data, "demos", f"{demo}_{view}")
             if not os.path.isdir(folder):
                 continue
             returns = [round(e["return"], 3) for e in collect.load_folder(folder, ())]
-            done = {(r["method"], r["seed"]) for r in rundir.finished(rundir.load_results(run_dir), demo, view, returns, configs, weights)}
+            done = {(r["method"], r["seed"]) for r in runner.finished(runner.load_results(run_dir), demo, view, returns, configs, weights)}
             count = lambda m: sum(method == m for method, _ in done)
             # only the seeds missing (a cell cut off goes on where it was); GIIL-online's candidates are GIIL-ZS's goals
             missing = [m for m in searches if min(count(m), count("GIIL-ZS (demo 0)")) < goal_inference.SEARCHES[m].seeds(ic, oc)]
@@ -254,8 +254,8 @@ def run_table(run_dir, ic, oc=None, settings=SETTINGS, shard=(0, 1), methods=("f
                 if count(method) < cfg.seeds and run_now and name in methods:
                     module.run_cell(run_dir, demo, view, cfg)
             shown.append((demo, view, returns, configs, weights))
-    rows = rundir.load_results(run_dir)  # read once all cells ran: the rows other shards appended meanwhile count too
-    text = markdown_tables(agent, [r for cell in shown for r in rundir.finished(rows, *cell)])
+    rows = runner.load_results(run_dir)  # read once all cells ran: the rows other shards appended meanwhile count too
+    text = markdown_tables(agent, [r for cell in shown for r in runner.finished(rows, *cell)])
     path = os.path.join(run_dir, "tables.md")
     rundir.atomic_write(path, lambda f: f.write(text.encode()))
     print(text)
@@ -263,15 +263,15 @@ def run_table(run_dir, ic, oc=None, settings=SETTINGS, shard=(0, 1), methods=("f
 
 
 def merge_files(paths):
-    """The rows of several results files, each file's latest (rundir.latest); a row in two files counts once, and two files
-    that score the same evaluation (rundir.row_key) differently are a one-line error naming both."""
+    """The rows of several results files, each file's latest (runner.latest); a row in two files counts once, and two files
+    that score the same evaluation (runner.row_key) differently are a one-line error naming both."""
     merged, keys = {}, ("agent", "demo", "view", "method", "seed", "score")
     for path in paths:
         rows = rundir.read_jsonl(path)
         if bad := [n for n, r in enumerate(rows, 1) if not isinstance(r, dict) or any(k not in r for k in keys)]:
             raise ValueError(f"{path}: row {bad[0]} is not a result row (a dict with {', '.join(keys)}); pass files imitate.py or tables.py wrote")
-        for r in rundir.latest(rows):
-            have = merged.setdefault(rundir.row_key(r), (path, r))
+        for r in runner.latest(rows):
+            have = merged.setdefault(runner.row_key(r), (path, r))
             if have[1]["score"] != r["score"]:
                 raise ValueError(f"{have[0]} and {path} score {r['method']} seed {r['seed']} on {r['demo']} ({r['view']} view) differently "
                                  f"({have[1]['score']:.2f} against {r['score']:.2f}), made alike: pass one of them")
@@ -312,8 +312,8 @@ def main():
         parser.error(f"--min-seeds {args.min_seeds}: must be >= 1")
     try:
         budgets = parse_budgets(args.budgets) if args.budgets else None
-        settings = rundir.parse_settings(args.settings or (",".join(SETTINGS) if mode == "--run" else "SE-SV,SE-CV"))
-        shard = rundir.parse_shard(args.shard)
+        settings = runner.parse_settings(args.settings or (",".join(SETTINGS) if mode == "--run" else "SE-SV,SE-CV"))
+        shard = runner.parse_shard(args.shard)
     except ValueError as error:
         parser.error(str(error))
     if mode == "--run":

@@ -104,11 +104,11 @@ def make_optimizers(models, cfgs):
 
 def diagnostics(models, cfgs, data, rng, device, post, post_feat, goal_feat, is_first, step):
     """What a log row adds to the losses: open-loop imagination (evaluate.open_loop_metrics), d of encoder goals 1, 5, 15
-    and 30 steps ahead (distance.distance_profile), Eq. 4's reward on reachable goals (evaluate.reachable_goal_reward)."""
+    and 30 steps ahead (evaluate.distance_profile), Eq. 4's reward on reachable goals (evaluate.reachable_goal_reward)."""
     wc, ac, wm = cfgs["wm"], cfgs["ac"], models["world_model"]
     out = evaluate.open_loop_metrics(wm, models["goal_vae"], data.sample(wc.batch, rng, device), wc.seq_len // 2)
     if wc.seq_len > 40:
-        out.update(distance.distance_profile(models["dist_net"], post_feat, goal_feat, is_first))
+        out.update(evaluate.distance_profile(models["dist_net"], post_feat, goal_feat, is_first))
     if step >= cfgs["train"].policy_start and wc.seq_len > ac.horizon:  # from the fresh actor's row on
         out.update(evaluate.reachable_goal_reward(wm, models["dist_net"], models["actor"], post, goal_feat, is_first, ac.horizon, seed=step))
     return out

@@ -56,6 +56,7 @@ import envs  # noqa: E402
 import evaluate  # noqa: E402
 import policy  # noqa: E402
 import rundir  # noqa: E402
+import runner  # noqa: E402
 from presets import PRESETS, config_flags  # noqa: E402
 from video_encoder import check_same_encoder  # noqa: E402
 
@@ -304,7 +305,7 @@ def run_seeds(cell, method, cfg, train, **extra):
 
 def cell_rows(cell, method, config):
     """This cell's rows of `method` made by the same agent's weights with the same demos (their returns) and config."""
-    return rundir.finished(rundir.load_results(cell["run_dir"]), cell["demo"], cell["view"], cell["demo_returns"], {method: config}, cell["weights"])
+    return runner.finished(runner.load_results(cell["run_dir"]), cell["demo"], cell["view"], cell["demo_returns"], {method: config}, cell["weights"])
 
 
 def append_row(cell, method, seed, scores, seconds, config, **extra):
@@ -360,7 +361,7 @@ def run_cells(parser, run_cell, method, cls, presets):
     args.run = checkpoint.work_folder(args.run)
     if args.demo:
         return run_cell(args.run, args.demo, args.view or "side", cfg, args.data)
-    settings, shard = rundir.parse_settings(args.settings), rundir.parse_shard(args.shard)
+    settings, shard = runner.parse_settings(args.settings), runner.parse_shard(args.shard)
     agent = checkpoint.load_run(args.run)[0]["train"].env
     for task, where in [c for c in envs.cells(agent) if c[1] in settings][shard[0]::shard[1]]:
         demo, view = envs.demo_of(agent, task, where)

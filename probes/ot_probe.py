@@ -26,7 +26,7 @@ import envs  # noqa: E402
 import evaluate  # noqa: E402
 import ot_reward  # noqa: E402
 import policy  # noqa: E402
-import rundir  # noqa: E402
+import runner  # noqa: E402
 
 
 def imagined_ot(models, cfgs, goals, demo_p, starts, seed=0):
@@ -58,7 +58,7 @@ def main():
     cfgs, models, _ = checkpoint.load_run(args.run)
     agent, data = cfgs["train"].env, cfgs["train"].data
     zs = {}
-    for r in rundir.load_results(args.run):
+    for r in runner.load_results(args.run):
         if r["method"] == "GIIL-ZS":
             zs[(r["demo"], r["view"], r["seed"])] = r["score"]
     hits, rhos = [], []

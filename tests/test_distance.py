@@ -99,7 +99,7 @@ def test_encoder_goals_score_each_pair_with_the_frame_s_encoder_goal_too():
 
 
 def test_distance_profile_reads_d_at_each_gap():
-    from distance import distance_profile
+    from evaluate import distance_profile
 
     B, T = 3, 45
     feat = torch.arange(T, dtype=torch.float)[None, :, None].expand(B, T, 1)  # feature = time step

@@ -359,7 +359,7 @@ def test_results_with_a_cut_last_line_still_table(tmp_path):
     row = {"demo": "walker_run", "view": "side", "method": "GIIL-ZS", "seed": 0, "score": 1.0}
     with open(path, "w") as f:
         f.write(json.dumps(row) + "\n" + json.dumps(row)[:20])  # a kill while appending
-    assert rundir.load_results(str(tmp_path)) == [row]
+    assert runner.load_results(str(tmp_path)) == [row]
     rundir.append_jsonl(path, dict(row, seed=1))
     assert [r["seed"] for r in rundir.read_jsonl(path)] == [0, 1] and open(path).read().count("\n") == 2
     with open(path, "a") as f:
@@ -369,7 +369,7 @@ def test_results_with_a_cut_last_line_still_table(tmp_path):
     with open(path, "a") as f:
         f.write("not json\n" + json.dumps(row) + "\n")
     with pytest.raises(ValueError, match=r"results.jsonl: line 5 is not a JSON row"):
-        rundir.load_results(str(tmp_path))
+        runner.load_results(str(tmp_path))
 
 
 # --- 6. a bad episode file is named ---
@@ -543,7 +543,7 @@ def test_a_cell_runs_in_one_process_at_a_time(smoke_run, tmp_path, monkeypatch):
     """Two --table processes without --shard: the second skips the cells the first is running; a --demo run of such a
     cell stops with one line."""
     run = copy_run(smoke_run, tmp_path)
-    lock = rundir.cell_lock(run, "walker_stand", "side")
+    lock = runner.cell_lock(run, "walker_stand", "side")
     other = subprocess.Popen(["sleep", "60"])
     try:
         os.makedirs(os.path.dirname(lock))
@@ -677,7 +677,7 @@ def test_nothing_is_written_through_a_link_in_a_run_folder(tmp_path):
     with pytest.raises(ValueError, match=r"results.jsonl is a symbolic link \(to .*rows.jsonl\): nothing is written through a link; remove it"):
         rundir.append_jsonl(str(run / "results.jsonl"), {"b": 2})
     with pytest.raises(ValueError, match=r"imitate is a symbolic link"):
-        rundir.cell_lock(str(run), "walker_run", "side")
+        runner.cell_lock(str(run), "walker_run", "side")
     with pytest.raises(ValueError, match=r"results.jsonl is a symbolic link"):
         rundir.atomic_write(str(run / "results.jsonl"), lambda f: f.write(b"{}"))
     assert (outside / "rows.jsonl").read_text() == '{"a": 1}\n{"cut' and os.listdir(outside) == ["rows.jsonl"]
@@ -702,6 +702,22 @@ def test_a_temporary_file_is_never_a_link_planted_at_a_predictable_name(tmp_path
     assert oct(os.stat(run / "goal_reaching.json").st_mode & 0o777) == oct(0o666 & ~rundir.UMASK)
     left = [n for n in os.listdir(run) if n != "goal_reaching.json"]  # planted links (those of dead pids cleared as leftovers)
     assert all(os.path.islink(run / n) for n in left)  # no temporary file of ours left
+
+
+def test_a_plot_is_never_written_through_a_link(smoke_run, tmp_path):
+    """learning_curve.png planted as a link in a run folder (train.py --resume redraws it): refused in one line, the
+    link's target untouched; GIIL-online's and the fidelity plots go through the same atomic write."""
+    run = tmp_path / "run"
+    shutil.copytree(smoke_run, run)
+    outside = tmp_path / "outside.png"
+    outside.write_bytes(b"kept")
+    os.remove(run / "learning_curve.png")
+    os.symlink(outside, run / "learning_curve.png")
+    with pytest.raises(ValueError, match=r"learning_curve.png is a symbolic link \(to .*outside.png\): nothing is written through a link"):
+        evaluate.learning_curve(str(run))
+    assert outside.read_bytes() == b"kept"
+    os.remove(run / "learning_curve.png")
+    assert evaluate.learning_curve(str(run)) == str(run / "learning_curve.png") and (run / "learning_curve.png").read_bytes()[:4] == b"\x89PNG"
 
 
 def test_the_shipped_agents_results_go_to_runs_not_into_its_folder(smoke_run, tmp_path, monkeypatch):

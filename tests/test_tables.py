@@ -10,7 +10,6 @@ import numpy as np
 
 import goal_inference
 import presets
-import rundir
 import runner
 import tables
 
@@ -73,7 +72,7 @@ def test_shards_together_make_the_whole_table_once(smoke_run, tmp_path, monkeypa
 
     def others_finish_meanwhile(run_dir, demo, view, *args, **kwargs):
         if (demo, view) == ("stickman_jump", "diagonal") and not others_ran:
-            others_ran.append(len({(r["demo"], r["view"]) for r in rundir.load_results(run)}))
+            others_ran.append(len({(r["demo"], r["view"]) for r in runner.load_results(run)}))
             for i in (1, 2):
                 tables.run_table(run, SMOKE, demos_per_cell=2, shard=(i, 3))
         return real(run_dir, demo, view, *args, **kwargs)
@@ -109,7 +108,7 @@ def test_baselines_join_the_table_as_columns_and_are_not_rerun(smoke_run, tmp_pa
     smoke = dataclasses.replace(SMOKE, preset="smoke")  # the baselines' smoke presets too
     one_cell = dict(demos_per_cell=2, shard=(0, 16))  # cell 0: stand, SE-SV
     tables.run_table(run, smoke, methods=("genrl", "aime-nob"), **one_cell)
-    rows = rundir.load_results(run)
+    rows = runner.load_results(run)
     seeds = {m: presets.PRESETS["genrl"]["smoke"]["seeds"] if m == "GenRL" else presets.PRESETS["aime_nob"]["smoke"]["seeds"] for m in ("GenRL", "AIME-NoB")}
     assert {r["method"] for r in rows} == {"GenRL", "AIME-NoB"} and {(r["task"], r["setting"]) for r in rows} == {("stand", "SE-SV")}
     assert len(rows) == sum(seeds.values())  # each baseline's seeds, no GIIL (not asked for)
@@ -117,16 +116,16 @@ def test_baselines_join_the_table_as_columns_and_are_not_rerun(smoke_run, tmp_pa
     assert "| GenRL (ours) | AIME-NoB (ours) | FT - ZS (demo 0), paired | GIIL-ZS (paper) | GIIL-FT (paper) | GenRL (paper) | AIME-NoB (paper) |" in text
     assert "| SE-SV | - | - | - | " in text and "| - | 42.52 | 68.10 | 86.05 | 84.80 |" in text  # GIIL not run; the paper's walker Table 1
     tables.run_table(run, smoke, methods=("genrl", "aime-nob"), **one_cell)
-    assert len(rundir.load_results(run)) == len(rows)  # nothing missing: nothing runs again
+    assert len(runner.load_results(run)) == len(rows)  # nothing missing: nothing runs again
     tables.run_table(run, smoke, methods=("finetune",), **one_cell)
-    assert {r["method"] for r in rundir.load_results(run)[len(rows):]} == {"GIIL-ZS", "GIIL-ZS (demo 0)", "GIIL-FT"}
+    assert {r["method"] for r in runner.load_results(run)[len(rows):]} == {"GIIL-ZS", "GIIL-ZS (demo 0)", "GIIL-FT"}
     assert "| GenRL (ours) | AIME-NoB (ours) |" in open(os.path.join(run, "tables.md")).read()  # the baselines' cells stay
     with pytest.raises(ValueError, match="--methods dreamer: choose from finetune, online, genrl, aime-nob"):
         tables.run_table(run, SMOKE, methods=("finetune", "dreamer"))
     # --budgets: GenRL's column at 2 updates, its 3-update rows (the preset's) no longer shown, then run again at 2
-    genrl_rows = len([r for r in rundir.load_results(run) if r["method"] == "GenRL"])
+    genrl_rows = len([r for r in runner.load_results(run) if r["method"] == "GenRL"])
     tables.run_table(run, smoke, methods=("genrl",), budgets=tables.parse_budgets("genrl=2"), **one_cell)
-    at_two = [r for r in rundir.load_results(run) if r["method"] == "GenRL"][genrl_rows:]
+    at_two = [r for r in runner.load_results(run) if r["method"] == "GenRL"][genrl_rows:]
     assert [r["config"]["steps"] for r in at_two] == [2] * seeds["GenRL"]
     with pytest.raises(ValueError, match=r"--budgets dreamer=\.\.\.: choose from genrl, aime-nob"):
         tables.parse_budgets("dreamer=5")
