@@ -318,11 +318,17 @@ def demo_folder(cfgs, demo, view):
     return os.path.join(tc.data, "demos", f"{demo}_{view}")
 
 
-def export_agent(run_dir, out_dir):
+def export_agent(run_dir, out_dir, force=False):
     """A trained run as a shipped agent: its models' float32 weights, config and shapes; no optimiser state or RNG.
+    An agent already at out_dir is replaced only with force, and kept (with what was written for it) in previous_<n>/.
     Loadable by checkpoint.load_run like any run (float16 files of earlier exports are cast back to float32 on loading).
     float32, not float16 (ours): the walker exported in float16 scored lower on the benchmark than its run, paired over
     the same episodes (docs/ablations.md, Training length and export), and float32 fits in 7.5 MB."""
+    rundir.not_training(run_dir)  # a checkpoint mid-training is not the agent
+    path = os.path.join(out_dir, "checkpoint.pt")
+    if os.path.exists(path) and not force:
+        raise ValueError(f"--export {out_dir}: {path} holds an agent already: pass --force to replace it (the old one is kept in "
+                         f"{out_dir}/previous_<n>/), or export elsewhere")
     ckpt = rundir.load_checkpoint(os.path.join(run_dir, "checkpoint.pt"))
     agent = {k: ckpt[k] for k in ("config", "step", "encoder", "obs_shape", "action_dim", "p_dim")}
     # D_body is not shipped: the agent reads (and collects) demos in its preset's default data folder, wherever it was
@@ -337,13 +343,12 @@ def export_agent(run_dir, out_dir):
     os.makedirs(out_dir, exist_ok=True)
     # what phase 2 and the benchmark wrote for the agent replaced here would mix with the new agent's (tables.py matches
     # rows by demo and settings, not by weights): moved, never deleted, to <out_dir>/previous_<n>/
-    made = [f for f in ("results.jsonl", "tables.md", "goal_reaching.json", "imitate") if os.path.exists(os.path.join(out_dir, f))]
+    made = [f for f in ("checkpoint.pt", "results.jsonl", "tables.md", "goal_reaching.json", "imitate") if os.path.exists(os.path.join(out_dir, f))]
     if made:
         old = next(p for n in range(10**6) if not os.path.exists(p := os.path.join(out_dir, f"previous_{n}")))  # the first free
         os.makedirs(old)
         for f in made:
             os.replace(os.path.join(out_dir, f), os.path.join(old, f))
         print(f"moved the replaced agent's {', '.join(made)} to {old}")
-    path = os.path.join(out_dir, "checkpoint.pt")
     rundir.atomic_write(path, lambda f: torch.save(agent, f))
     return path

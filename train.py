@@ -218,16 +218,19 @@ def main():
     parser.add_argument("--run-dir", default=None, help="default runs/<env>_<obs>_<preset>_s<seed>")
     parser.add_argument("--export", metavar="DIR", help="write the trained run (--run-dir) as a shipped agent DIR/checkpoint.pt "
                         "(weights only, float32), then exit; e.g. agents/walker")
+    parser.add_argument("--force", action="store_true", help="with --export: replace the agent already there (kept in DIR/previous_<n>/)")
     add_config_flags(parser)
     args = parser.parse_args()
     envs._check_name("body", getattr(args, "train.env") or TrainConfig.env, envs.BODIES)
     cfgs = resolve_configs(args, getattr(args, "train.preset") or "cpu")
     tc = cfgs["train"]
     run_dir = args.run_dir or default_run_dir(tc.env, tc.preset, tc.seed, cfgs["wm"].obs)
+    if args.force and not args.export:
+        parser.error("--force replaces an exported agent: it goes with --export DIR")
     if (args.export or args.evaluate) and (args.resume or args.allow_cpu):
         parser.error(f"--{'resume' if args.resume else 'allow-cpu'} is for training: it does nothing with --export or --evaluate")
     if args.export:
-        print("wrote", checkpoint.export_agent(run_dir, args.export))
+        print("wrote", checkpoint.export_agent(run_dir, args.export, args.force))
     elif args.evaluate:
         device = "cuda" if torch.cuda.is_available() else "cpu"
         run_cfgs, models, _ = load_run(run_dir, device, getattr(args, "train.env"))

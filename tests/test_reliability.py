@@ -821,7 +821,7 @@ def test_a_baseline_never_resumes_a_state_of_other_weights(smoke_run, tmp_path):
     assert genrl.cell_rows(other, "GenRL", row["config"]) == []
 
 
-def test_a_run_in_training_is_not_imitated(smoke_run, tmp_path):
+def test_a_run_in_training_is_not_imitated_nor_exported(smoke_run, tmp_path):
     run = copy_run(smoke_run, tmp_path)
     trainer = subprocess.Popen(["sleep", "60"])
     try:
@@ -831,6 +831,9 @@ def test_a_run_in_training_is_not_imitated(smoke_run, tmp_path):
             runner.imitate(run, "walker_run", "side", SMOKE_IMITATE)
         with pytest.raises(ValueError, match="is being trained now"):
             tables.run_table(run, SMOKE_IMITATE)
+        with pytest.raises(ValueError, match="is being trained now"):  # its update-k checkpoint is no agent to ship
+            checkpoint.export_agent(run, str(tmp_path / "agents" / "walker"))
+        assert not os.path.exists(tmp_path / "agents")
     finally:
         trainer.kill()
         trainer.wait()

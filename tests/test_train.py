@@ -161,17 +161,22 @@ def test_exported_agent_loads_weights_only_and_acts_like_its_run(smoke_run, tmp_
     for name, model in run_models.items():
         for (k, a), b in zip(model.state_dict().items(), agent_models[name].state_dict().values()):
             assert b.dtype == a.dtype and torch.equal(a, b), (name, k)
-    # exporting over an agent moves what was measured on the old one aside, so no table mixes the two
+    # exporting over an agent needs force, and moves the old agent and what was measured on it aside (no table mixes the two)
     with open(os.path.join(os.path.dirname(path), "results.jsonl"), "w") as f:
         f.write('{"method": "GIIL-ZS"}\n')
-    checkpoint.export_agent(smoke_run, os.path.dirname(path))
+    before = open(path, "rb").read()
+    with pytest.raises(ValueError, match=r"walker/checkpoint.pt holds an agent already: pass --force to replace it"):
+        checkpoint.export_agent(smoke_run, os.path.dirname(path))
+    assert sorted(os.listdir(os.path.dirname(path))) == ["checkpoint.pt", "results.jsonl"]
+    checkpoint.export_agent(smoke_run, os.path.dirname(path), force=True)
     assert not os.path.exists(os.path.join(os.path.dirname(path), "results.jsonl"))
     assert open(os.path.join(os.path.dirname(path), "previous_0", "results.jsonl")).read() == '{"method": "GIIL-ZS"}\n'
+    assert open(os.path.join(os.path.dirname(path), "previous_0", "checkpoint.pt"), "rb").read() == before
     shutil.rmtree(os.path.join(os.path.dirname(path), "previous_0"))
     os.makedirs(os.path.join(os.path.dirname(path), "previous_1"))  # a gap: the next export takes the first free name
     with open(os.path.join(os.path.dirname(path), "results.jsonl"), "w") as f:
         f.write('{"method": "GIIL-FT"}\n')
-    checkpoint.export_agent(smoke_run, os.path.dirname(path))
+    checkpoint.export_agent(smoke_run, os.path.dirname(path), force=True)
     assert open(os.path.join(os.path.dirname(path), "previous_0", "results.jsonl")).read() == '{"method": "GIIL-FT"}\n'
     # phase 2's default: the user's own run when there is one, else the shipped agent, saying which
     monkeypatch.chdir(tmp_path)
