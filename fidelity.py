@@ -16,7 +16,7 @@ and the held-out ELBO terms of Eq. 2 (recon, KL per step) on those episodes, of 
 
 --ranking is the functional test, for a trained agent (world model and policy): on a same-body cell, does Eq. 5's
 imagined objective rank goals as reality does? Candidates: the zero-shot goals q(s | p_T) of the cell's 10 demos and
-10 draws of q(s | p_T) of its first demo (online.posterior_goals), whose outcomes differ. Each goal acts in the real
+10 draws of q(s | p_T) of its first demo (posterior_goals), whose outcomes differ. Each goal acts in the real
 environment from the same `--episodes` start states (env seeds 60000 + i); its real score is Eq. 8's, averaged. Eq. 5's
 J of a goal is the mean OT reward of the frozen policy's imagined rollouts, as GIIL-FT computes it (goal_inference.py): 256
 starts from goal-encoder states of demo frames t0, `horizon` steps, matched against the demo frames after t0; every goal
@@ -45,7 +45,6 @@ import checkpoint
 import collect
 import envs
 import evaluate
-import online
 import ot_reward
 import policy
 import rundir
@@ -54,6 +53,22 @@ STARTS = (10, 110, 210, 310)  # t0: where imagination leaves the filter (ours: 4
 AHEAD = 100  # steps imagined from each start
 HORIZONS = (16, 50, 100)  # the reported k: GenRL's imagination horizon (16), and further
 GAPS = (1, 5, 15, 50, 100)  # --distance: steps from a state to its goal
+
+
+def sample_goals(vae, p, n, generator=None, scale=1.0):
+    """Ours, for the ranking and the probes: n draws s^g ~ q(s | p) of the goal VAE `vae` as goal vectors, from `generator`'s standard normal noise multiplied by `scale` (a
+    Gaussian's std times scale; a categorical z's draws flatter for scale > 1): p (1, D) -> (n, deter + stoch)."""
+    assert p.shape == (1, vae.feat_dim), p.shape
+    mean_h, std_h, stats = vae.distribution(p)
+    noise = torch.randn(n, vae.deter + vae.stoch, generator=generator).to(mean_h.device)
+    return vae._sample(mean_h, std_h, stats, scale * noise)
+
+
+def posterior_goals(vae, p_last, n, seed):
+    """q(s | p_T)'s mean (GIIL-ZS's goal) and n - 1 draws s^g ~ q(s | p_T) of the goal
+    encoder's distribution (a Gaussian's mean + std * eps), their noise from `seed`. p_last (D,) -> (n, F)."""
+    p = torch.as_tensor(p_last)[None]
+    return torch.cat([vae.goal(p), sample_goals(vae, p, n - 1, torch.Generator().manual_seed(seed))])
 
 
 def held_out_episodes(cfgs):
@@ -254,7 +269,7 @@ def rank_goals(models, cfgs, task, demo_p, episodes, ot_cfg, draws=10):
     """The functional test of one cell (module docstring) -> a row without its run and cell."""
     vae = models["goal_vae"]
     with torch.no_grad():
-        goals = torch.cat([vae.goal(torch.as_tensor(demo_p[:, -1])), online.posterior_goals(vae, demo_p[0, -1], draws + 1, seed=0)[1:]])
+        goals = torch.cat([vae.goal(torch.as_tensor(demo_p[:, -1])), posterior_goals(vae, demo_p[0, -1], draws + 1, seed=0)[1:]])
     real = real_scores(models, cfgs, task, goals, episodes)  # (episodes, G)
     j, reward = imagined_objective(models, cfgs, task, goals, demo_p, ot_cfg)
     half = evaluate.spearman(real[0::2].mean(0), real[1::2].mean(0))

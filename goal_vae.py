@@ -79,14 +79,6 @@ class GoalVAE(nn.Module):
         eps, noise_z = noise.split([self.deter, self.stoch], -1)
         return torch.cat([mean_h + std_h * eps, self.latent.sample(stats, noise_z)], -1)
 
-    def sample_goals(self, p, n, generator=None, scale=1.0):
-        """n draws s^g ~ q(s | p) as goal vectors, from `generator`'s standard normal noise multiplied by `scale` (a
-        Gaussian's std times scale; a categorical z's draws flatter for scale > 1): p (1, D) -> (n, deter + stoch)."""
-        assert p.shape == (1, self.feat_dim), p.shape
-        mean_h, std_h, stats = self.distribution(p)
-        noise = torch.randn(n, self.deter + self.stoch, generator=generator).to(mean_h.device)
-        return self._sample(mean_h, std_h, stats, scale * noise)
-
     def decode(self, feat):
         """p_hat, the mean direction of p(p_t | s): feat (..., deter + stoch) -> unit vectors (..., D)."""
         assert feat.shape[-1] == self.deter + self.stoch, feat.shape

@@ -40,13 +40,6 @@ def budget(cfg, candidates):
 
 
 @torch.no_grad()
-def posterior_goals(vae, p_last, n, seed):
-    """q(s | p_T)'s mean (GIIL-ZS's goal) and n - 1 draws s^g ~ q(s | p_T) of the goal
-    encoder's distribution (a Gaussian's mean + std * eps), their noise from `seed`. p_last (D,) -> (n, F)."""
-    p = torch.as_tensor(p_last)[None]
-    return torch.cat([vae.goal(p), vae.sample_goals(p, n - 1, torch.Generator().manual_seed(seed))])
-
-
 def episode_features(models, env_list, goals, steps, obs_key, seed, encoder):
     """Real episodes with goals (N, F) from env seeds seed, seed + 1, ... (or a list of N seeds) -> video features
     (N, steps + 1, D) of the agent's own rendered frames. The environments' task returns are dropped here: nothing

@@ -32,6 +32,7 @@ import checkpoint  # noqa: E402
 import collect  # noqa: E402
 import envs  # noqa: E402
 import evaluate  # noqa: E402
+import fidelity  # noqa: E402
 import rundir  # noqa: E402
 from goal_variance import split  # noqa: E402
 
@@ -45,8 +46,8 @@ def candidate_sets(vae, demo_p, n=10, seed=0):
     last = torch.as_tensor(np.stack([p[-1] for p in demo_p]))
     zs = vae.goal(last)
     weights = torch.from_numpy(np.random.default_rng(seed).dirichlet(np.ones(len(zs)), n)).float()
-    return {"zs": zs[:n], "q x1": vae.sample_goals(last[:1], n, gen),
-            "q x2": vae.sample_goals(last[:1], n, gen, scale=2.0), "mix": weights @ zs}
+    return {"zs": zs[:n], "q x1": fidelity.sample_goals(vae, last[:1], n, gen),
+            "q x2": fidelity.sample_goals(vae, last[:1], n, gen, scale=2.0), "mix": weights @ zs}
 
 
 @torch.no_grad()

@@ -3,7 +3,7 @@
 GIIL-online (online.py) scores a goal by its real episodes: the agent's own rendered frames, encoded by the run's video
 encoder, against the demos' features; the task reward is never read. A search can only be as good as that scorer's
 ranking of goals on start states it has not seen. This probe runs a cell's candidates (GIIL-online's region of goal
-space: q(s | p_T)'s mean and draws at 1 std, online.posterior_goals) for `episodes` episodes from start states A and as
+space: q(s | p_T)'s mean and draws at 1 std, fidelity.posterior_goals) for `episodes` episodes from start states A and as
 many from start states B, keeps every episode's features and true score (a probe may read it) in a cache, and scores
 each episode by every scorer of SCORERS. The measure: Spearman of a goal's mean scorer value on A against its mean true
 score on B, and the same with A and B swapped, averaged; the ceiling is the true score on A against the true score on
@@ -27,6 +27,7 @@ import checkpoint  # noqa: E402
 import collect  # noqa: E402
 import envs  # noqa: E402
 import evaluate  # noqa: E402
+import fidelity  # noqa: E402
 import online  # noqa: E402
 import ot_reward  # noqa: E402
 import rundir  # noqa: E402
@@ -74,7 +75,7 @@ def render_cell(run, demo, view, n_goals, episodes):
     rundir.fast_matmul()
     task, encoder = envs.parse_demo(demo)[1], load_encoder(cfgs["train"].encoder)
     demo_p = np.stack([d["p"] for d in collect.load_folder(checkpoint.demo_folder(cfgs, demo, view), ("p",))])
-    goals = online.posterior_goals(models["goal_vae"], demo_p[0][-1], n_goals, seed=0)
+    goals = fidelity.posterior_goals(models["goal_vae"], demo_p[0][-1], n_goals, seed=0)
     p, true = [], []
     for base in (SEEDS_A, SEEDS_B):
         for e in tqdm(range(episodes), desc=f"{demo} {view} {'AB'[base == SEEDS_B]}"):

@@ -5,6 +5,7 @@ import torch
 import torch.nn.functional as F
 from torch.distributions import Independent, Normal, OneHotCategorical, kl_divergence
 
+import fidelity
 import presets
 import world_model as W
 from tests.fixtures import random_batch
@@ -82,7 +83,7 @@ def test_sample_goals_draws_q_of_s_given_p(discrete):
     """n draws s^g ~ q(s | p): h = mean_h + scale std_h eps; z a latent.sample from the same noise (Gaussian: mean + std eps)."""
     world_model, vae = models(discrete)
     p = F.normalize(torch.randn(1, D, generator=torch.Generator().manual_seed(0)), dim=-1)
-    goals = vae.sample_goals(p, 6, torch.Generator().manual_seed(3), scale=2.0)
+    goals = fidelity.sample_goals(vae, p, 6, torch.Generator().manual_seed(3), scale=2.0)
     eps = 2.0 * torch.randn(6, vae.deter + vae.stoch, generator=torch.Generator().manual_seed(3))
     mean_h, std_h, stats = vae.distribution(p)
     assert goals.shape == (6, world_model.feat_dim) and torch.equal(goals[:, :vae.deter], mean_h + std_h * eps[:, :vae.deter])

@@ -9,6 +9,7 @@ import torch
 
 import checkpoint
 import envs
+import fidelity
 import goal_inference
 import online
 import presets
@@ -87,9 +88,9 @@ def test_posterior_goals_start_at_the_zero_shot_goal(smoke_run):
     """q(s | p_T)'s mean first (GIIL-ZS's goal), then seeded draws around it (fidelity.py's ranking goals)."""
     _, models, _ = checkpoint.load_run(smoke_run)
     vae, p_last = models["goal_vae"], np.random.default_rng(0).standard_normal(models["goal_vae"].feat_dim).astype(np.float32)
-    goals = online.posterior_goals(vae, p_last, 10, seed=3)
+    goals = fidelity.posterior_goals(vae, p_last, 10, seed=3)
     assert goals.shape == (10, vae.deter + vae.stoch) and torch.equal(goals[0], vae.goal(torch.as_tensor(p_last)).detach())
-    assert torch.equal(goals, online.posterior_goals(vae, p_last, 10, seed=3)) and not torch.equal(goals, online.posterior_goals(vae, p_last, 10, seed=4))
+    assert torch.equal(goals, fidelity.posterior_goals(vae, p_last, 10, seed=3)) and not torch.equal(goals, fidelity.posterior_goals(vae, p_last, 10, seed=4))
     assert len(torch.unique(goals, dim=0)) == 10
 
 
