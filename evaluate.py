@@ -319,6 +319,11 @@ def across_runs(run_dirs):
         if other != run_dir:
             raise ValueError(f"{other} and {run_dir} are the same run: pass each training seed once")
     records = {run_dir: read_goal_reaching(run_dir) for run_dir in run_dirs}
+    agents = {}
+    for run_dir, record in records.items():  # a copy of a run (cp -a) is the same agent: one seed, not two
+        other = agents.setdefault(record["weights"], run_dir)
+        if other != run_dir:
+            raise ValueError(f"{other} and {run_dir} hold the same agent ({record['weights']}): pass each training seed once")
     first = run_dirs[0]
     for run_dir, record in records.items():
         for key in ("agent", "preset", "settings"):

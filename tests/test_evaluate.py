@@ -11,16 +11,16 @@ import rundir
 
 
 def test_summary_and_across_runs_by_hand(smoke_run, tmp_path):
-    import shutil
-
     import torch
 
     runs, tc = [], checkpoint.load_run(smoke_run)[0]["train"]
-    weights = rundir.weights_id(torch.load(os.path.join(smoke_run, "checkpoint.pt"), weights_only=True))
     for k, (stand, walk, run) in enumerate([([10, 20], [50, 70], [0, 10]), ([30, 30], [40, 40], [20, 20])]):
         folder = tmp_path / f"r{k}"
         folder.mkdir()
-        shutil.copy(os.path.join(smoke_run, "checkpoint.pt"), folder)
+        ckpt = torch.load(os.path.join(smoke_run, "checkpoint.pt"), weights_only=True)
+        ckpt["models"]["actor"] = {n: v + k for n, v in ckpt["models"]["actor"].items()}  # two training seeds: two agents
+        torch.save(ckpt, folder / "checkpoint.pt")
+        weights = rundir.weights_id(ckpt)
         scores = {"stand": {"policy": stand, "random": [0, 0]}, "walk": {"policy": walk, "random": [1, 3]},
                   "run": {"policy": run, "random": [0, 0]}, "jump": {"policy": [99, 99], "random": [0, 0]}}
         evaluate.write_goal_reaching(str(folder), scores, tc, weights)
@@ -36,8 +36,8 @@ def test_summary_and_across_runs_by_hand(smoke_run, tmp_path):
 
 
 def test_across_runs_refuses_what_is_not_one_comparison(smoke_run, tmp_path):
-    """The same run twice, runs benchmarked with other settings, a benchmark of weights since trained on, and a file
-    that names no agent: each a one-line error."""
+    """The same run twice, a copy of a run, runs benchmarked with other settings, a benchmark of weights since trained on,
+    and a file that names no agent: each a one-line error."""
     import dataclasses
     import shutil
 
@@ -49,7 +49,12 @@ def test_across_runs_refuses_what_is_not_one_comparison(smoke_run, tmp_path):
         shutil.copytree(smoke_run, run)
     with pytest.raises(ValueError, match=r"/a and .*/b/\.\./a are the same run: pass each training seed once"):
         evaluate.across_runs([a, os.path.join(b, "..", "a")])
-    weights = rundir.weights_id(torch.load(os.path.join(b, "checkpoint.pt"), weights_only=True))
+    with pytest.raises(ValueError, match=r"/a and .*/b hold the same agent \(6:\w+\): pass each training seed once"):
+        evaluate.across_runs([a, b])  # a copy of a run (cp -a) is one agent, not a second seed
+    ckpt = torch.load(os.path.join(b, "checkpoint.pt"), weights_only=True)
+    ckpt["models"]["actor"] = {k: v + 1 for k, v in ckpt["models"]["actor"].items()}
+    torch.save(ckpt, os.path.join(b, "checkpoint.pt"))
+    weights = rundir.weights_id(ckpt)
     evaluate.write_goal_reaching(b, json.load(open(os.path.join(b, "goal_reaching.json")))["scores"], dataclasses.replace(tc, eval_steps=2), weights)
     with pytest.raises(ValueError, match=r"differ in settings .*'eval_steps': 10.* against .*'eval_steps': 2"):
         evaluate.across_runs([a, b])
