@@ -318,14 +318,15 @@ def ranking_markdown(rows):
 def main():
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0], allow_abbrev=False)
     parser.add_argument("run", nargs="?", help="the run whose world model is benchmarked (none with --table)")
-    parser.add_argument("--out", help="append the row to this JSONL (default: docs/results/fidelity_<body>.jsonl)")
+    parser.add_argument("--out", help="append the row to this JSONL (default: the run's fidelity.jsonl, ranking.jsonl or distance.jsonl; "
+                        "the committed docs/results files only when named here)")
     parser.add_argument("--table", nargs="+", metavar="JSONL", help="print the markdown table of these rows and stop")
     parser.add_argument("--png", help="with --table: also plot the last row of each run to this PNG")
     parser.add_argument("--curve", action="store_true", help="with --table: one line per row (a learning curve), not one per source")
-    parser.add_argument("--ranking", action="store_true", help="the functional test: Eq. 5's J against real scores (default --out "
-                        "docs/results/ranking_<body>.jsonl; cells already there are skipped)")
+    parser.add_argument("--ranking", action="store_true", help="the functional test: Eq. 5's J against real scores (cells already in "
+                        "--out are skipped)")
     parser.add_argument("--distance", action="store_true", help="Eq. 6-7: does d(s_t, goal of frame t + k) rise with k on held-out "
-                        "episodes (default --out docs/results/distance_<body>.jsonl)")
+                        "episodes")
     parser.add_argument("--settings", default="SE-SV,SE-CV", help="with --ranking: the same-body cells (never the cross-domain ones)")
     parser.add_argument("--episodes", type=int, default=10, help="with --ranking: real episodes per goal, shared start states")
     args = parser.parse_args()
@@ -343,16 +344,18 @@ def main():
     if not args.run:
         parser.error("pass a run folder (e.g. agents/walker) or --table JSONL ...")
     torch.set_num_threads(1)
+    rundir.not_training(args.run)  # a checkpoint mid-training is not the run's world model
     cfgs, models, ckpt = checkpoint.load_run(args.run)
+    kind = "ranking" if args.ranking else "distance" if args.distance else "fidelity"
+    out = args.out or os.path.join(checkpoint.work_folder(args.run), f"{kind}.jsonl")  # committed rows only when --out names them
     if args.ranking:
-        ranking(args.run, ckpt["step"], cfgs, models, args.settings.split(","), args.episodes, args.out or f"docs/results/ranking_{cfgs['train'].env}.jsonl")
+        ranking(args.run, ckpt["step"], cfgs, models, args.settings.split(","), args.episodes, out)
         return
     if args.distance:
         row = {"run": args.run, "step": ckpt["step"], "distance": {name: distance_ranking(models["world_model"], models["goal_vae"],
                models["dist_net"], eps) for name, eps in held_out_episodes(cfgs).items()}}
     else:
         row = benchmark(models, held_out_episodes(cfgs), ckpt["step"], args.run)
-    out = args.out or f"docs/results/{'distance' if args.distance else 'fidelity'}_{cfgs['train'].env}.jsonl"
     rundir.append_jsonl(out, row)
     print(distance_markdown([row]) if args.distance else markdown([row]))
     print("appended to", out)

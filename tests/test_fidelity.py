@@ -134,3 +134,22 @@ def test_distance_ranking_reads_d_at_each_gap_and_the_observations_own_distance(
     assert obs["rho_episode"] == obs["rho_start"] == 1.0 and np.all(np.diff(obs["d"]) > 0) and obs["other"] > obs["d"][-1]
     table = fidelity.distance_markdown([{"run": "toy", "step": 3, "distance": {"walk": out}}])
     assert "| toy | 3 | walk | obs | " in table and "| 1.00 / 1.00 |" in table
+
+
+def test_the_command_writes_into_the_run_and_docs_only_when_asked(smoke_run, tmp_path):
+    """python fidelity.py <run>: the row goes to the run's fidelity.jsonl, never by default into the committed
+    docs/results files (a smoke run's row there would join the shipped agents' rows); --out names another file."""
+    import os
+    import shutil
+    import subprocess
+    import sys
+
+    run = tmp_path / "run"
+    shutil.copytree(smoke_run, run)
+    script = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "fidelity.py")
+    env = {**os.environ, "MUJOCO_GL": os.environ.get("MUJOCO_GL", "egl")}
+    done = subprocess.run([sys.executable, script, str(run)], cwd=tmp_path, env=env, capture_output=True, text=True)
+    assert done.returncode == 0, done.stderr[-500:]
+    assert len(fidelity.rundir.read_jsonl(str(run / "fidelity.jsonl"))) == 1 and not (tmp_path / "docs").exists()
+    done = subprocess.run([sys.executable, script, str(run), "--out", str(tmp_path / "rows.jsonl")], cwd=tmp_path, env=env, capture_output=True, text=True)
+    assert done.returncode == 0 and len(fidelity.rundir.read_jsonl(str(tmp_path / "rows.jsonl"))) == 1
