@@ -108,6 +108,10 @@ def test_reader_names_corrupt_file(data, tmp_path):
     np.savez(bad, **episode)
     with pytest.raises(ValueError, match="short_p.npz: missing key.*action"):
         collect.load_episode(bad)
+    episode = dict(np.load(good), **{"return": np.float64("nan")})  # a demo's return names its demos in every result row
+    np.savez(bad, **episode)
+    with pytest.raises(ValueError, match=r"short_p.npz: its return nan is not a finite number; delete the file and rerun collect.py"):
+        collect.load_episode(bad)
 
 
 def test_missing_expert_names_the_command(tmp_path, monkeypatch):
