@@ -138,8 +138,13 @@ def parse_online(args, preset):
 
 def load_results(run_dir):
     """The latest row per row_key of runs/<name>/results.jsonl: a rerun replaces its own earlier result, never one made
-    with other demos, settings or weights."""
-    return latest(rundir.read_jsonl(os.path.join(run_dir, "results.jsonl")))
+    with other demos, settings or weights. A line that is no result row ({}, [1, 2], NaN) is a one-line error."""
+    path = os.path.join(run_dir, "results.jsonl")
+    rows = rundir.read_jsonl(path)
+    for number, row in enumerate(rows, 1):
+        if not isinstance(row, dict) or not {"demo", "view", "method", "seed"} <= set(row):
+            raise ValueError(f"{path}: line {number} is not a result row ({json.dumps(row)[:60]}): remove that line, or move the file aside")
+    return latest(rows)
 
 
 def row_key(r):

@@ -57,9 +57,13 @@ PAPER = {
 def parse_budgets(text):
     """--budgets genrl=2000,aime-nob=15000 -> {name: budget}."""
     try:
-        budgets = {name: int(value) for name, value in (item.split("=") for item in text.split(","))}
+        pairs = [(name, int(value)) for name, value in (item.split("=") for item in text.split(","))]
     except ValueError:
         raise ValueError(f"--budgets {text}: pass NAME=BUDGET pairs, e.g. genrl=2000,aime-nob=15000") from None
+    budgets = dict(pairs)
+    if len(budgets) < len(pairs):
+        twice = next(name for name, _ in pairs if sum(n == name for n, _ in pairs) > 1)
+        raise ValueError(f"--budgets {text}: {twice} is given twice; pass one budget per baseline")
     unknown = [name for name in budgets if name not in BASELINES]
     if unknown:
         raise ValueError(f"--budgets {unknown[0]}=...: choose from {', '.join(BASELINES)}")

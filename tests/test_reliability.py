@@ -720,6 +720,17 @@ def test_a_plot_is_never_written_through_a_link(smoke_run, tmp_path):
     assert evaluate.learning_curve(str(run)) == str(run / "learning_curve.png") and (run / "learning_curve.png").read_bytes()[:4] == b"\x89PNG"
 
 
+def test_a_results_line_that_is_no_row_is_named(tmp_path):
+    """results.jsonl lines {}, [1, 2], "x" or NaN: one line naming the file and the line, not a KeyError under imitate."""
+    good = json.dumps(dict(demo="walker_run", view="side", method="GIIL-ZS", seed=0, score=1.0)) + "\n"
+    for bad in ("{}", "[1, 2]", '"x"', "NaN"):
+        (tmp_path / "results.jsonl").write_text(good + bad + "\n" + good)
+        with pytest.raises(ValueError, match=r"results.jsonl: line 2 is not a result row \(.*\): remove that line, or move the file aside"):
+            runner.load_results(str(tmp_path))
+    (tmp_path / "results.jsonl").write_text(good + good)
+    assert len(runner.load_results(str(tmp_path))) == 1
+
+
 def test_the_shipped_agents_results_go_to_runs_not_into_its_folder(smoke_run, tmp_path, monkeypatch):
     """Phase 2 on agents/<body> writes to runs/agent_<body> (its checkpoint a link to the agent's); agents/ keeps the weights only."""
     monkeypatch.chdir(tmp_path)

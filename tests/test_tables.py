@@ -129,6 +129,8 @@ def test_baselines_join_the_table_as_columns_and_are_not_rerun(smoke_run, tmp_pa
     assert [r["config"]["steps"] for r in at_two] == [2] * seeds["GenRL"]
     with pytest.raises(ValueError, match=r"--budgets dreamer=\.\.\.: choose from genrl, aime-nob"):
         tables.parse_budgets("dreamer=5")
+    with pytest.raises(ValueError, match=r"--budgets genrl=5,genrl=7: genrl is given twice; pass one budget per baseline"):
+        tables.parse_budgets("genrl=5,genrl=7")
 
 
 def test_finetuning_gain_is_paired_by_cell_and_seed():
