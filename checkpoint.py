@@ -248,11 +248,24 @@ def work_folder(run_dir):
     return work
 
 
+def body_episodes(cfgs, keys):
+    """D_body's episodes in the run's data folder, for the commands that read it without collecting (the baselines,
+    fidelity.py): refused in one line where its collection.json lists episodes no longer on disk (train.py collects them)."""
+    tc = cfgs["train"]
+    folder = os.path.join(tc.data, tc.env)
+    complete = os.path.join(folder, collect.COMPLETE)
+    listed = json.load(open(complete)).get("episodes", []) if os.path.exists(complete) else []
+    if lost := [n for n in listed if not os.path.exists(os.path.join(folder, n))]:
+        raise ValueError(f"D_body at {folder} lacks {len(lost)} of the {len(listed)} episodes its {collect.COMPLETE} lists ({lost[0]}, ...): "
+                         f"collect them again (python collect.py --env {tc.env} --data {tc.data} --preset {tc.preset})")
+    return collect.load_folder(folder, keys)
+
+
 def body_segments(cfgs):
     """D_body as collect.Segments (the run's data folder and segment length): what L_MG keeps training on."""
-    wc, tc = cfgs["wm"], cfgs["train"]
+    wc = cfgs["wm"]
     keys = (wc.obs, "action", "is_first", "p")
-    return collect.Segments(collect.load_folder(os.path.join(tc.data, tc.env), keys), keys, wc.seq_len)
+    return collect.Segments(body_episodes(cfgs, keys), keys, wc.seq_len)
 
 
 def prepare_data(cfgs):

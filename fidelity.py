@@ -78,7 +78,7 @@ def held_out_episodes(cfgs):
     tc, wc = cfgs["train"], cfgs["wm"]
     keys = (wc.obs, "action", "is_first", "p")
     out = {task: collect.load_folder(os.path.join(tc.data, "demos", f"{tc.env}_{task}_side"), keys) for task in envs.TASKS}
-    body = collect.load_folder(os.path.join(tc.data, tc.env), keys)
+    body = checkpoint.body_episodes(cfgs, keys)
     out["body"], out["body_train"] = body[:: tc.holdout_every], body[1 :: tc.holdout_every]
     return out
 

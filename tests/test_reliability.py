@@ -731,6 +731,25 @@ def test_a_results_line_that_is_no_row_is_named(tmp_path):
     assert len(runner.load_results(str(tmp_path))) == 1
 
 
+def test_a_d_body_with_deleted_episodes_is_named_where_it_is_read_without_collecting(smoke_run, smoke_data, tmp_path):
+    """2 D_body episodes deleted: the baselines' segments (checkpoint.body_segments) and fidelity.py's held-out episodes
+    are refused in one line naming the collect command, instead of training or measuring on what is left."""
+    import fidelity
+
+    data = tmp_path / "data"
+    shutil.copytree(smoke_data, data)
+    cfgs = checkpoint.load_run(copy_run(smoke_run, tmp_path, str(data)))[0]
+    gone = sorted(n for n in os.listdir(data / "walker") if n.endswith(".npz"))[:2]
+    for name in gone:
+        os.remove(data / "walker" / name)
+    listed = len(json.load(open(data / "walker" / collect.COMPLETE))["episodes"])
+    match = rf"D_body at .*walker lacks 2 of the {listed} episodes its collection.json lists \({gone[0]}, ...\): collect them again \(python collect.py --env walker --data .*data --preset smoke\)"
+    with pytest.raises(ValueError, match=match):
+        checkpoint.body_segments(cfgs)
+    with pytest.raises(ValueError, match=match):
+        fidelity.held_out_episodes(cfgs)
+
+
 def test_the_shipped_agents_results_go_to_runs_not_into_its_folder(smoke_run, tmp_path, monkeypatch):
     """Phase 2 on agents/<body> writes to runs/agent_<body> (its checkpoint a link to the agent's); agents/ keeps the weights only."""
     monkeypatch.chdir(tmp_path)
