@@ -37,6 +37,18 @@ def done_here(rows, demo, view, returns, ic, oc, weights):
     return {(r["method"], r["seed"]) for r in finished(rows, demo, view, returns, configs, weights)}
 
 
+EVAL_SEED = 20_000  # a cell's evaluation episodes start from environment seeds EVAL_SEED + 100 seed + e (ours)
+
+
+def check_online_seeds(ic, oc, demos=10):
+    """GIIL-online's goal-choosing episodes (env seeds seed_base + 1000 seed + i) never start where an evaluation's do
+    (EVAL_SEED + 100 seed + e, for the demos' GIIL-ZS and every search's seeds): a one-line error otherwise."""
+    last = EVAL_SEED + 100 * (max(ic.seeds, oc.seeds, demos) - 1) + ic.eval_episodes  # one past the evaluations' last seed
+    if any(oc.seed_base + 1000 * s < last and EVAL_SEED < oc.seed_base + 1000 * (s + 1) for s in range(oc.seeds)):
+        raise ValueError(f"--online-seed-base {oc.seed_base}: GIIL-online's episodes would start where the evaluation's do (environment "
+                         f"seeds {EVAL_SEED} to {last - 1}): pass {last} or more (default {online.OnlineConfig.seed_base})")
+
+
 def imitate(run_dir, demo, view, ic, searches=(), oc=None, zero_shot=True, done=None):
     """For one demo folder: GIIL-ZS on every demo (unless not zero_shot), then each goal search named (goal_inference.SEARCHES' keys)
     for its seeds, each seed beside GIIL-ZS (demo 0) on the same evaluation seeds. Appends each evaluation to
@@ -45,6 +57,8 @@ def imitate(run_dir, demo, view, ic, searches=(), oc=None, zero_shot=True, done=
     (a rerun after Ctrl-C goes on, appending no duplicates; a retrained agent runs again)."""
     rundir.check_flags(ic)
     oc = oc or online.OnlineConfig(**presets.PRESETS["online"][ic.preset])
+    if "GIIL-online" in searches:
+        check_online_seeds(ic, oc)
     device = "cuda" if torch.cuda.is_available() else "cpu"
     rundir.not_training(run_dir)
     cfgs, models, ckpt = checkpoint.load_run(run_dir, device)
@@ -68,14 +82,14 @@ def imitate(run_dir, demo, view, ic, searches=(), oc=None, zero_shot=True, done=
     done, rows = set(done), []  # done grows as this call evaluates: the searches share their GIIL-ZS (demo 0) seeds
 
     def evaluate_goal(method, seed, goal, k, t0, **extra):
-        """eval_episodes episodes at once with goal (F,), environment seeds 20000 + 100 seed + e: a search's seed s and
+        """eval_episodes episodes at once with goal (F,), environment seeds EVAL_SEED + 100 seed + e: a search's seed s and
         GIIL-ZS (demo 0) seed s meet the same start states. Seed 0's median-scoring episode (a representative one, its
         index in the row's video_episode) is written as a video beside demo k, but for GIIL-ZS (demo 0): its seed 0 is
         GIIL-ZS's demo 0, goal and start alike, already written."""
         render = bool(ic.video) and seed == 0 and method != "GIIL-ZS (demo 0)"
         env_list = [envs.make_env(tc.env, task) for _ in range(ic.eval_episodes)]
         returns, frames = evaluate.run_episodes(env_list, models, goal[None].expand(ic.eval_episodes, -1), ic.eval_steps,
-                                                cfgs["wm"].obs, 20_000 + 100 * seed, render)
+                                                cfgs["wm"].obs, EVAL_SEED + 100 * seed, render)
         scores = [evaluate.episode_score(task, r, ic.eval_steps) for r in returns]
         if render:
             name = re.sub(r"[^A-Za-z0-9-]+", "_", method)  # GIIL-ZS, GIIL-FT, GIIL-online: no shell quoting needed

@@ -118,3 +118,22 @@ def test_online_flags_are_checked_and_need_online():
         out = subprocess.run([sys.executable, "imitate.py", "--demo", "walker_run", *flags], capture_output=True, text=True,
                              cwd=os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
         assert out.returncode != 0 and message in out.stderr, out.stderr
+
+
+def test_the_goal_choosing_episodes_never_start_where_the_evaluation_does(smoke_run):
+    """--online-seed-base 20000 would replay the evaluation's start states (seeds 20000 + 100 seed + e) while choosing the
+    goal: refused in one line before anything runs; the default and a base past the evaluations' seeds pass."""
+    import dataclasses
+
+    import pytest
+
+    cpu = goal_inference.ImitateConfig()
+    runner.check_online_seeds(cpu, online.OnlineConfig())
+    with pytest.raises(ValueError, match=r"--online-seed-base 20000: GIIL-online's episodes would start where the evaluation's do "
+                                         r"\(environment seeds 20000 to 20902\): pass 20903 or more \(default 50000\)"):
+        runner.check_online_seeds(cpu, online.OnlineConfig(seed_base=20_000))
+    runner.check_online_seeds(cpu, online.OnlineConfig(seed_base=20_903))
+    runner.check_online_seeds(cpu, online.OnlineConfig(seed_base=16_000))  # its 3 seeds' episodes end below 20000
+    oc = dataclasses.replace(online.OnlineConfig(**presets.PRESETS["online"]["smoke"]), seed_base=19_500)
+    with pytest.raises(ValueError, match="--online-seed-base 19500"):
+        runner.imitate(smoke_run, "walker_walk", "side", SMOKE, ["GIIL-online"], oc)
