@@ -116,6 +116,13 @@ def stored_configs(ckpt, path):
             if not isinstance(value, (int, float) if kind is float else kind) or isinstance(value, bool) != (kind is bool):
                 raise ValueError(f"{damaged}: its config {name}.{field} is {value!r}, not of type {kind.__name__}")
         cfgs[name] = cls(**{k: v for k, v in fields.items() if k in known})
+        for field, allowed in getattr(cls, "choices", {}).items():
+            if getattr(cfgs[name], field) not in allowed:
+                raise ValueError(f"{damaged}: its config {name}.{field} is {getattr(cfgs[name], field)!r}, not one of {', '.join(allowed)}")
+        try:  # the ranges the flags are held to (a stored deter -1 or horizon 0 is no model to build)
+            rundir.check_flags(cfgs[name], prefix)
+        except ValueError as error:
+            raise ValueError(f"{damaged}: its config holds {error}") from None
     if cfgs["train"].preset not in PRESETS["train"]:
         raise ValueError(f"{damaged}: its preset {cfgs['train'].preset!r} is not one of {', '.join(PRESETS['train'])}")
     return cfgs
@@ -141,7 +148,11 @@ def load_run(run_dir, device="cpu", env=None):
     ckpt = rundir.run_checkpoint(run_dir, device, env)
     path = os.path.join(run_dir, "checkpoint.pt")
     cfgs = stored_configs(ckpt, path)
-    shapes = (ckpt["obs_shape"], ckpt["action_dim"], ckpt["p_dim"])
+    shapes = (ckpt.get("obs_shape"), ckpt.get("action_dim"), ckpt.get("p_dim"))
+    obs_ok = shapes[0] == (64, 64, 3) or list(shapes[0] or ()) == [64, 64, 3] if cfgs["wm"].obs == "pixels" else isinstance(shapes[0], int) and shapes[0] >= 1
+    if not (obs_ok and all(isinstance(n, int) and n >= 1 for n in shapes[1:]) and isinstance(ckpt.get("step"), int) and ckpt["step"] >= 0):
+        raise ValueError(f"{path} is damaged or not this project's checkpoint: its step {ckpt.get('step')!r} or shapes (observation "
+                         f"{shapes[0]!r}, action {shapes[1]!r}, p {shapes[2]!r}) are not counts; delete it or restore it from a copy")
     with torch.device("meta"):  # names and shapes checked before any memory is taken
         check_weights(ckpt, build_models(cfgs, *shapes, "meta"), path)
     models = build_models(cfgs, *shapes, device)

@@ -232,6 +232,9 @@ def run_checkpoint(run_dir, device="cpu", env=None):
             flags.append(f"--run-dir {run_dir}")
         raise FileNotFoundError(f"no checkpoint at {path}: train one with `python train.py {' '.join(flags)}`")
     ckpt = load_checkpoint(path, device)
+    config = ckpt.get("config") if isinstance(ckpt, dict) else None
+    if not (isinstance(config, dict) and all(isinstance(config.get(k), dict) for k in ("train", "wm")) and isinstance(ckpt.get("models"), dict)):
+        raise ValueError(f"{path} is damaged or not this project's checkpoint: it holds no run config and models; delete it or restore it from a copy")
     tc = ckpt["config"]["train"]
     has = {"env": tc["env"], "obs": ckpt["config"]["wm"]["obs"], "preset": tc["preset"], "seed": str(tc["seed"])}
     if env and env != has["env"]:

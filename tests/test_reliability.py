@@ -440,6 +440,15 @@ def test_older_pickled_checkpoint_is_named_and_never_unpickled(smoke_run, tmp_pa
     (lambda c: c["config"].update(foo={}), r"its config names \['ac', 'cloning', 'dist', 'foo', 'goal', 'train', 'wm'\]"),
     (lambda c: c["config"]["train"].update(preset="huge"), r"its preset 'huge' is not one of smoke, cpu, paper$"),
     (lambda c: c["config"]["wm"].update(deter="x"), r"its config wm\.deter is 'x', not of type int$"),
+    (lambda c: c["config"]["wm"].update(deter=-1), r"its config holds --wm-deter -1: must be >= 1$"),
+    (lambda c: c["config"]["ac"].update(horizon=0), r"its config holds --ac-horizon 0: must be >= 1$"),
+    (lambda c: c["config"]["dist"].update(reading="bogus"), r"its config dist\.reading is 'bogus', not one of eq7, td$"),
+    (lambda c: c["config"]["wm"].update(obs="bogus"), r"its config wm\.obs is 'bogus', not one of state, pixels$"),
+    (lambda c: c.update(p_dim=-5), r"its step \d+ or shapes \(observation \d+, action \d+, p -5\) are not counts"),
+    (lambda c: c.update(obs_shape="x"), r"its step \d+ or shapes \(observation 'x', action"),
+    (lambda c: c.update(step="abc"), r"its step 'abc' or shapes"),
+    (lambda c: c.pop("models"), r"it holds no run config and models; delete it or restore it from a copy$"),
+    (lambda c: c.update(config=[1, 2]), r"it holds no run config and models"),
 ])
 def test_a_damaged_checkpoint_is_named_before_any_model_is_built(smoke_run, tmp_path, damage, says):
     run = copy_run(smoke_run, tmp_path)
@@ -448,6 +457,13 @@ def test_a_damaged_checkpoint_is_named_before_any_model_is_built(smoke_run, tmp_
     damage(ckpt)
     torch.save(ckpt, path)
     with pytest.raises(ValueError, match=r"checkpoint.pt is damaged or not this project's checkpoint: " + says):
+        checkpoint.load_run(run)
+
+
+def test_a_checkpoint_that_is_a_list_is_named(smoke_run, tmp_path):
+    run = copy_run(smoke_run, tmp_path)
+    torch.save([1, 2, 3], os.path.join(run, "checkpoint.pt"))
+    with pytest.raises(ValueError, match=r"checkpoint.pt is damaged or not this project's checkpoint: it holds no run config and models"):
         checkpoint.load_run(run)
 
 
