@@ -96,9 +96,8 @@ def write_video(path, demo_frames, agent_frames):
 
 @torch.no_grad()
 def open_loop(wm, batch, context):
-    """Ours, for Eq. 2: observe steps [0, context), imagine [context, T) with the recorded actions from the last
-    posterior state (prior modes, no sampling) -> imagined feats (B, T - context, F) and keep (B,): False for segments
-    with an episode start inside the imagined part."""
+    """Ours, for Eq. 2: observe steps [0, context), imagine [context, T) with the recorded actions from the last posterior
+    state (prior modes) -> imagined feats (B, T - context, F), keep (B,): False where an episode starts in that part."""
     obs, action, is_first = batch[wm.cfg.obs], batch["action"], batch["is_first"]
     assert 0 < context < action.shape[1]
     post, _ = wm.observe(obs[:, :context], action[:, :context], is_first[:, :context])
@@ -116,9 +115,9 @@ def replay(wm, state, actions, sample=False):
 
 
 def open_loop_error(wm, batch, context, imagined=None):
-    """The decoder's mean squared error per observation element on the open-loop imagined steps (open_loop,
-    or `imagined`, its output for this batch when already computed), in the decoder's target space (symlog
-    for states, [-0.5, 0.5] for pixels); NaN if no segment is kept."""
+    """The decoder's mean squared error per observation element on the open-loop imagined steps (open_loop, or `imagined`,
+    its output for this batch when already computed), in the decoder's target space (symlog for states, [-0.5, 0.5]
+    for pixels); NaN if no segment is kept."""
     feats, keep = imagined or open_loop(wm, batch, context)
     err = wm._decode_raw(feats) - wm._target(batch[wm.cfg.obs][:, context:])
     return err[keep].pow(2).mean().item() if keep.any() else float("nan")
@@ -268,8 +267,13 @@ def read_goal_reaching(run_dir):
         record = json.load(open(path))
     except json.JSONDecodeError:
         raise ValueError(f"{path} is cut or damaged (not JSON): {again} again") from None
+    if not isinstance(record, dict):
+        raise ValueError(f"{path} is damaged (it holds {json.dumps(record)[:40]}, not a benchmark record): {again} again")
     if "weights" not in record:
         raise ValueError(f"{path} was written before results named their agent: {again} again")
+    scores = record.get("scores")
+    if not isinstance(scores, dict) or not all(isinstance(s, dict) and isinstance(s.get("policy"), list) and s["policy"] for s in scores.values()):
+        raise ValueError(f"{path} is damaged (its scores are not per-task lists of the policy's episode scores): {again} again")
     now = rundir.weights_id(rundir.run_checkpoint(run_dir))
     if record["weights"] != now:
         raise ValueError(f"{path} scores the agent {record['weights']}, but {run_dir} now holds {now} (trained since): {again} again")

@@ -309,9 +309,11 @@ def atomic_write(path, write, by_name=False):
         else:
             with os.fdopen(fd, "wb") as f:
                 write(f)
-    except BaseException:  # an error or Ctrl-C half-way: the old file stays, and no temporary one
+    except BaseException as error:  # an error or Ctrl-C half-way: the old file stays, and no temporary one
         with contextlib.suppress(FileNotFoundError):
             os.remove(tmp)
+        if isinstance(error, OSError) and not error.filename:  # a full disk met inside write(f): name the file it was for
+            raise OSError(error.errno, error.strerror or str(error), path) from None
         raise
     os.replace(tmp, path)
     for left in glob.glob(glob.escape(path) + ".*.tmp*"):

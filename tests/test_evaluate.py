@@ -67,6 +67,12 @@ def test_across_runs_refuses_what_is_not_one_comparison(smoke_run, tmp_path):
         json.dump(json.load(open(os.path.join(a, "goal_reaching.json")))["scores"], f)  # the format before the agent was named
     with pytest.raises(ValueError, match="was written before results named their agent"):
         evaluate.across_runs([a, b])
+    for damaged, says in (("null", r"is damaged \(it holds null, not a benchmark record\)"),
+                          ('{"weights": "6:ab", "scores": {"stand": {"random": [0]}}}', r"is damaged \(its scores are not per-task lists")):
+        with open(os.path.join(b, "goal_reaching.json"), "w") as f:
+            f.write(damaged)
+        with pytest.raises(ValueError, match=says + r".*: run `python train.py --evaluate --run-dir .*b` again"):
+            evaluate.across_runs([a, b])
 
 
 def test_run_episodes_sums_each_environment_s_true_reward(smoke_run):

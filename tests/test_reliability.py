@@ -766,6 +766,21 @@ def test_a_d_body_with_deleted_episodes_is_named_where_it_is_read_without_collec
         fidelity.held_out_episodes(cfgs)
 
 
+def test_a_full_disk_names_the_file_it_was_writing(tmp_path):
+    """A write that fails inside the file object (torch.save, json on a full disk: an OSError without a file name) ends in
+    one line naming the file and what is kept, and leaves no temporary file."""
+    import errno
+
+    path = str(tmp_path / "goal_reaching.json")
+
+    def full(f):
+        raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+
+    with pytest.raises(SystemExit, match=rf"^error: No space left on device: {path} \(the old file is kept\)$"):
+        rundir.run_main(lambda: rundir.atomic_write(path, full), "the old file is kept")
+    assert os.listdir(tmp_path) == []
+
+
 def test_the_shipped_agents_results_go_to_runs_not_into_its_folder(smoke_run, tmp_path, monkeypatch):
     """Phase 2 on agents/<body> writes to runs/agent_<body> (its checkpoint a link to the agent's); agents/ keeps the weights only."""
     monkeypatch.chdir(tmp_path)
