@@ -195,10 +195,8 @@ def load_episode(path, keys=tuple(KEYS)):
             raise ValueError(f"{path}: key 'action' must lie in [-1, 1], has {value[tuple(bad)]:g} at step {bad[0]}; delete the file and rerun collect.py")
     for key in META[:-1]:
         episode[key] = str(episode[key])
-    try:
-        episode["return"] = float(episode["return"])
-    except (TypeError, ValueError):
-        episode["return"] = math.nan
+    number = np.asarray(episode["return"]).dtype.kind in "fiu" and np.size(episode["return"]) == 1
+    episode["return"] = float(episode["return"]) if number else math.nan
     if not math.isfinite(episode["return"]):  # a demo's return names its demos in every result row (runner.finished)
         raise ValueError(f"{path}: its return {episode['return']} is not a finite number; delete the file and rerun collect.py")
     episode["path"] = path
