@@ -18,7 +18,7 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-import policy
+import rundir
 
 
 @dataclass
@@ -109,5 +109,5 @@ def polish(models, cfgs, data, device):
         for k in tqdm(range(cc.bc_polish), desc="polish the actor (behaviour cloning on the final world model)"):
             feat, goal, action, final, value = cache[k % len(cache)]
             loss, m = bc_loss(actor, feat, goal, action, final, cc.bc_final, value, cc.bc_advantage)
-            policy.checked_step(opt, loss, "the polish's behaviour-cloning loss", k, stop, ac.grad_clip)
+            rundir.checked_step(opt, loss, "the polish's behaviour-cloning loss", k, stop, ac.grad_clip)
     print(f"polished the actor: {cc.bc_polish} cloning steps on the final world model, bc_loss {m['bc_loss']:.3f}")

@@ -39,6 +39,7 @@ import online
 import ot_reward
 import policy
 import presets
+import rundir
 from video_encoder import load_encoder
 
 
@@ -105,7 +106,7 @@ def finetune_goal(models, cfgs, ic, ot_cfg, p_goal, demo_p, seed, device):
         start = {k: start[k] for k in models["world_model"].state_keys}
         gi_loss, ot_loss, metrics = goal_inference_loss(models, critic_ot, slow_ot, goal, start, demo_p, cfgs, ot_cfg, t0 + 1)
         for opt, loss, what in ((opt_goal, gi_loss, "Eq. 5 L_GI"), (opt_ot, ot_loss, "V_ot loss")):
-            policy.checked_step(opt, loss, f"GIIL-FT seed {seed}: {what}", step, stop)
+            rundir.checked_step(opt, loss, f"GIIL-FT seed {seed}: {what}", step, stop)
         policy.ema_update(slow_ot, critic_ot, ac.slow_critic_rate)
         bar.set_postfix(ot=f"{metrics['ot_reward']:.4f}")
     return goal.detach()

@@ -14,7 +14,6 @@ done for them); train.py keeps separate optimisers, so nothing but the actor mov
 
 Phase 2 (Eq. 5, goal_inference.py) reuses rollout, lambda_return, actor_loss, critic_loss and freeze with the OT reward,
 a critic V_ot(s) built with goal_dim = 0 (goal None), and the goal vector g as the only thing optimised by L_GI.
-Every optimiser step of the project is checked_step: refused, weights untouched, when a loss diverged.
 """
 import contextlib
 import copy
@@ -28,9 +27,6 @@ import torch.nn.functional as F
 
 from world_model import mlp
 
-
-DIVERGED = 1e10  # |loss| above this is divergence (ours: the smoke preset's losses are below 100; a learning rate of 1e3 on
-# the goal VAE, distance or critic gave losses of 1e20 and more within 4 updates)
 
 @dataclass
 class ActorCriticConfig:
@@ -285,18 +281,3 @@ def make_critics(cfg, feat_dim, goal_dim):
     """The critic and its slow copy (a constant: requires_grad False, moved only by ema_update)."""
     critic = Critic(cfg, feat_dim, goal_dim)
     return critic, copy.deepcopy(critic).requires_grad_(False)
-
-
-def checked_step(opt, loss, what, update, stop, clip=math.inf):
-    """opt.step() on `loss`, its gradient's global norm clipped at `clip`; unless the loss diverged (DIVERGED) or is
-    not finite, or its gradient is not: then a one-line ValueError '<what> is <loss> at update <update>: stopped;
-    <stop()>' (or '... has a non-finite gradient ...'), the weights untouched. stop: what was kept and what to try."""
-    opt.zero_grad(set_to_none=True)
-    bad = "" if abs(loss.item()) < DIVERGED else f"is {loss.item():.3g}"  # False for nan and inf too
-    if not bad:
-        loss.backward()
-        norm = torch.nn.utils.clip_grad_norm_([p for group in opt.param_groups for p in group["params"]], clip)
-        bad = "" if torch.isfinite(norm) else f"has a non-finite gradient (norm {norm.item()})"
-    if bad:
-        raise ValueError(f"{what} {bad} at update {update}: stopped; {stop()}")
-    opt.step()

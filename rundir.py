@@ -15,6 +15,7 @@ atomic_write  every file the project writes, videos too: a temporary file per wr
               can guess), renamed onto the path (never half a file)
 load_checkpoint, plain, generator   checkpoints that load with torch.load(weights_only=True), and only so
 weights_id    the identity of a checkpoint's agent, which every result row carries
+checked_step  every optimiser step of the project: refused in one line, weights untouched, when a loss diverged
 """
 import contextlib
 import dataclasses
@@ -321,6 +322,25 @@ def atomic_write(path, write, by_name=False):
         if pid.isdigit() and not alive(int(pid)):
             with contextlib.suppress(FileNotFoundError):
                 os.remove(left)
+
+
+DIVERGED = 1e10  # |loss| above this is divergence (ours: the smoke preset's losses are below 100; a learning rate of 1e3 on
+# the goal VAE, distance or critic gave losses of 1e20 and more within 4 updates)
+
+
+def checked_step(opt, loss, what, update, stop, clip=math.inf):
+    """opt.step() on `loss`, its gradient's global norm clipped at `clip`; unless the loss diverged (DIVERGED) or is
+    not finite, or its gradient is not: then a one-line ValueError '<what> is <loss> at update <update>: stopped;
+    <stop()>' (or '... has a non-finite gradient ...'), the weights untouched. stop: what was kept and what to try."""
+    opt.zero_grad(set_to_none=True)
+    bad = "" if abs(loss.item()) < DIVERGED else f"is {loss.item():.3g}"  # False for nan and inf too
+    if not bad:
+        loss.backward()
+        norm = torch.nn.utils.clip_grad_norm_([p for group in opt.param_groups for p in group["params"]], clip)
+        bad = "" if torch.isfinite(norm) else f"has a non-finite gradient (norm {norm.item()})"
+    if bad:
+        raise ValueError(f"{what} {bad} at update {update}: stopped; {stop()}")
+    opt.step()
 
 
 def weights_id(ckpt):

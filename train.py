@@ -142,7 +142,7 @@ def pretrain(cfgs, run_dir, resume):
     first, rng = checkpoint.resume_from(ckpt_path, resume, cfgs, models, optims, encoder, device, rng)
     rundir.trim_jsonl(log_path, first)  # rows a killed run logged after its checkpoint
     keep = lambda done, **actors: checkpoint.save(ckpt_path, cfgs, done, rng, encoder, shapes, models, optims, **actors)
-    update = lambda name, loss, term: policy.checked_step(optims[name], loss, term, step, lambda: checkpoint.stop_hint(ckpt_path, saved, cfgs, name), clips[name])
+    update = lambda name, loss, term: rundir.checked_step(optims[name], loss, term, step, lambda: checkpoint.stop_hint(ckpt_path, saved, cfgs, name), clips[name])
     saved, t0, metrics, total = first, time.time(), {}, tc.wm_steps + tc.steps
     for step in (bar := tqdm(range(first, total), initial=first, total=total, desc=f"train {os.path.basename(run_dir)}")):
         batch = data.sample(wc.batch, rng, device)

@@ -164,7 +164,7 @@ def train_policy(models, cfgs, gc, target, segments, seed, device, on_budget=Non
         a_loss, metrics = policy.actor_loss(returns, log_prob, return_norm, ac.entropy)
         c_loss, _ = policy.critic_loss(critic, feat, None, returns)
         for opt, loss, what in zip(optims, (a_loss, c_loss), ("actor loss", "critic loss")):
-            policy.checked_step(opt, loss, f"{METHOD} seed {seed}: the {what}", step, stop, ac.grad_clip)
+            rundir.checked_step(opt, loss, f"{METHOD} seed {seed}: the {what}", step, stop, ac.grad_clip)
         policy.ema_update(slow_critic, critic, ac.slow_critic_rate)
         bar.set_postfix(sim=f"{reward.mean().item():.3f}", ret=f"{metrics['return']:.2f}")
         if on_budget and step + 1 in marks:

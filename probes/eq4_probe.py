@@ -76,8 +76,8 @@ def train_eq4(models, cfgs, data, updates, critic_real, log_every, seed):
             first = torch.arange(wc.batch) * wc.seq_len
             real_goals = policy.sample_goals(post_feat, goal_feat, first, batch["is_first"], ac.goal_mix, ac.goal_near)
             c_loss = c_loss + real_critic_loss(critic, slow_critic, dist_net, post_feat, real_goals, ac)
-        policy.checked_step(opt_actor, a_loss, "Eq. 4 actor loss", step, stop, ac.grad_clip)
-        policy.checked_step(opt_critic, c_loss, "Eq. 4 critic loss", step, stop, ac.grad_clip)
+        rundir.checked_step(opt_actor, a_loss, "Eq. 4 actor loss", step, stop, ac.grad_clip)
+        rundir.checked_step(opt_critic, c_loss, "Eq. 4 critic loss", step, stop, ac.grad_clip)
         policy.ema_update(slow_critic, critic, ac.slow_critic_rate)
         if (step + 1) % log_every == 0:
             reach = evaluate.reachable_goal_reward(wm, dist_net, actor, post, goal_feat, batch["is_first"], ac.horizon, seed=step)
