@@ -248,11 +248,11 @@ def summary(scores):
 BENCHMARK = ("eval_episodes", "eval_steps", "eval_seed")  # the TrainConfig fields a benchmark's scores depend on
 
 
-def write_goal_reaching(run_dir, scores, tc, weights):
+def write_goal_reaching(run_dir, scores, tc, weights, name="goal_reaching.json"):
     """runs/<name>/goal_reaching.json: the scores, with the agent that made them (body, preset, rundir.weights_id)
     and the benchmark's settings."""
     record = {"agent": tc.env, "preset": tc.preset, "weights": weights, "settings": {k: getattr(tc, k) for k in BENCHMARK}, "scores": scores}
-    path = os.path.join(run_dir, "goal_reaching.json")
+    path = os.path.join(run_dir, name)
     rundir.atomic_write(path, lambda f: f.write(json.dumps(record).encode()))
     return path
 

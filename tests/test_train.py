@@ -137,8 +137,10 @@ def test_command_line_runs_and_resumes(smoke_data, tmp_path):
     assert "average stand/walk/run" in first.stdout
     evaluated = subprocess.run(base + ["--evaluate", "--eval-episodes", "2"], cwd=cwd, capture_output=True, text=True)
     assert evaluated.returncode == 0, evaluated.stderr[-2000:]
-    record = json.load(open(os.path.join(run, "goal_reaching.json")))
+    # other settings than the run's: written beside its goal_reaching.json, named by them; the kept one stays
+    record = json.load(open(os.path.join(run, "goal_reaching_episodes2_steps10_seed30000.json")))
     assert all(len(s["policy"]) == 4 for s in record["scores"].values()) and record["settings"]["eval_episodes"] == 2  # 2 demos x 2
+    assert json.load(open(os.path.join(run, "goal_reaching.json")))["settings"]["eval_episodes"] == 1
     again = subprocess.run(base + ["--resume", "--steps", "8"], cwd=cwd, capture_output=True, text=True)
     assert again.returncode == 0 and "resumed" in again.stdout
     assert torch.load(os.path.join(run, "checkpoint.pt"), weights_only=True)["step"] == 8
