@@ -66,7 +66,7 @@ def claim(path):
     """Yields None while this process holds the lock file `path` (created with O_EXCL, holding its pid; removed at the
     end), or the pid of the live process that holds it (then nothing is taken). A lock file whose process is gone (a
     killed run) is stale and taken over; one holding this process's own pid is an outer block's, and left to it."""
-    os.makedirs(os.path.dirname(path) or ".", exist_ok=True)
+    os.makedirs(os.path.dirname(no_link(path)) or ".", exist_ok=True)
     fd = holder = None
     for attempt in range(3):
         try:
@@ -132,9 +132,11 @@ def trim_jsonl(path, step):
 
 
 def no_link(path):
-    """path, refused where it is a symbolic link: a run folder from elsewhere never makes this project write outside it."""
-    if os.path.islink(path):
-        raise ValueError(f"{path} is a symbolic link (to {os.readlink(path)}): nothing is written through a link; remove it")
+    """path, refused where it or the folder it is written into is a symbolic link (a run folder's baselines/, a demo
+    folder): a run or data folder from elsewhere never makes this project write outside it."""
+    for link in (path, os.path.dirname(path)):
+        if link and os.path.islink(link):
+            raise ValueError(f"{link} is a symbolic link (to {os.readlink(link)}): nothing is written through a link; remove it")
     return path
 
 

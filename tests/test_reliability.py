@@ -697,6 +697,15 @@ def test_nothing_is_written_through_a_link_in_a_run_folder(tmp_path):
     with pytest.raises(ValueError, match=r"results.jsonl is a symbolic link"):
         rundir.atomic_write(str(run / "results.jsonl"), lambda f: f.write(b"{}"))
     assert (outside / "rows.jsonl").read_text() == '{"a": 1}\n{"cut' and os.listdir(outside) == ["rows.jsonl"]
+    # a folder a file is written into that is a link: a run's baselines/ states, a demo folder of the data
+    os.symlink(outside, run / "baselines")
+    with pytest.raises(ValueError, match=r"run/baselines is a symbolic link \(to .*outside\): nothing is written through a link"):
+        rundir.atomic_write(str(run / "baselines" / "state.pt"), lambda f: f.write(b"{}"))
+    os.makedirs(tmp_path / "data" / "demos")
+    os.symlink(outside, tmp_path / "data" / "demos" / "stickman_walk_side")
+    with pytest.raises(ValueError, match=r"stickman_walk_side is a symbolic link"):
+        rundir.atomic_write(str(tmp_path / "data" / "demos" / "stickman_walk_side" / "00.npz"), lambda f: f.write(b"x"))
+    assert os.listdir(outside) == ["rows.jsonl"]
 
 
 def test_a_temporary_file_is_never_a_link_planted_at_a_predictable_name(tmp_path):
