@@ -279,6 +279,13 @@ def merge_files(paths):
             if have[1]["score"] != r["score"]:
                 raise ValueError(f"{have[0]} and {path} score {r['method']} seed {r['seed']} on {r['demo']} ({r['view']} view) differently "
                                  f"({have[1]['score']:.2f} against {r['score']:.2f}), made alike: pass one of them")
+    agents = {}  # a cell's columns read one agent: rows of two weights of one body are not averaged together
+    for path, r in merged.values():
+        if r.get("weights"):
+            other = agents.setdefault((r["agent"], r["demo"], r["view"]), (path, r["weights"]))
+            if other[1] != r["weights"]:
+                raise ValueError(f"{other[0]} and {path} hold rows of two agents ({other[1]} and {r['weights']}) for {r['agent']} imitating "
+                                 f"{r['demo']} ({r['view']} view): pass the rows of one agent's weights")
     return [r for _, r in merged.values()]
 
 

@@ -920,6 +920,14 @@ def test_two_files_scoring_one_evaluation_differently_are_named(tmp_path):
         tables.merge_files([str(a), str(b)])
     b.write_text(json.dumps(row) + "\n" + json.dumps(dict(row, seed=1)) + "\n")
     assert len(tables.merge_files([str(a), str(b)])) == 2  # the same row in both counts once
+    # rows of two weights of one body in one cell (a retrained agent's beside the old one's), in two files or in one
+    b.write_text(json.dumps(dict(row, seed=1, weights="6:cd")) + "\n")
+    with pytest.raises(ValueError, match=r"a.jsonl and .*b.jsonl hold rows of two agents \(6:ab and 6:cd\) for walker imitating walker_run "
+                                         r"\(side view\): pass the rows of one agent's weights"):
+        tables.merge_files([str(a), str(b)])
+    a.write_text(json.dumps(row) + "\n" + json.dumps(dict(row, seed=1, weights="6:cd")) + "\n")
+    with pytest.raises(ValueError, match="hold rows of two agents"):
+        tables.merge_files([str(a)])
 
 
 def test_every_config_field_says_what_it_is_in_the_help():
