@@ -78,6 +78,9 @@ if __name__ == "__main__":
     parser.add_argument("results", nargs="+", help="results.jsonl files (imitate.py) with GIIL-ZS rows, or with --benchmark run folders")
     parser.add_argument("--benchmark", action="store_true", help="the runs' goal-reaching benchmark (goal_reaching.json) instead")
     args = parser.parse_args()
+    if folders := [p for p in args.results if os.path.isdir(p) != args.benchmark]:
+        parser.error(f"{folders[0]}: pass results.jsonl files, or run folders with --benchmark" if not args.benchmark else
+                     f"{folders[0]}: --benchmark reads run folders (their goal_reaching.json); drop it for results.jsonl files")
     if args.benchmark:
         print(markdown(benchmark_rows(args.results)))
     else:

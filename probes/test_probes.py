@@ -228,6 +228,9 @@ def test_goal_variance_reads_the_benchmark_by_demo(smoke_run, tmp_path):
         json.dump(record, f)
     g, e, rel, mean, _ = goal_variance.benchmark_rows([run])[(run, "benchmark", "walk")]
     assert mean == 40.0 and (g, e, rel) == goal_variance.split([[10.0, 30.0], [50.0, 70.0]])
+    script = os.path.join(os.path.dirname(os.path.abspath(__file__)), "goal_variance.py")
+    out = subprocess.run([sys.executable, script, run], capture_output=True, text=True)  # a folder without --benchmark
+    assert out.returncode == 2 and out.stderr.strip().endswith(f"error: {run}: pass results.jsonl files, or run folders with --benchmark")
 
 
 def test_goal_probe_scores_every_goal_by_every_objective(smoke_run):
