@@ -904,6 +904,8 @@ def test_a_run_in_training_is_not_imitated_nor_exported(smoke_run, tmp_path):
         with pytest.raises(ValueError, match="is being trained now"):  # its update-k checkpoint is no agent to ship
             checkpoint.export_agent(run, str(tmp_path / "agents" / "walker"))
         assert not os.path.exists(tmp_path / "agents")
+        out = subprocess.run([sys.executable, "train.py", "--evaluate", "--run-dir", run, "--preset", "smoke"], cwd=ROOT, capture_output=True, text=True)
+        assert out.returncode == 1 and "is being trained now" in out.stderr
     finally:
         trainer.kill()
         trainer.wait()
