@@ -1,8 +1,9 @@
 """Phase 2's harness, under imitate.py (one demo folder) and tables.py (every cell): a demo folder's rows in
-runs/<name>/results.jsonl (each naming the agent's weights and the settings it depends on), resumed from them, its videos
-and plots, and the flags of ImitateConfig and OnlineConfig; a cell's lock (cell_lock), which rows count for it (load_results,
-finished, row_key) and the --shard / --settings of tables.py and the baselines. The method it runs is goal_inference.py (Eq. 5 and the
-goal searches' registry, SEARCHES); missing demos of the body x task imitated are collected first (collect.py).
+runs/<name>/results.jsonl (each naming the agent's weights and the settings it depends on), resumed from them, its
+videos and plots, and the flags of ImitateConfig and OnlineConfig; a cell's lock (cell_lock), which rows count for it
+(load_results, finished, row_key) and the --shard / --settings of tables.py and the baselines. The method it runs is
+goal_inference.py (Eq. 5 and the goal searches' registry, SEARCHES); missing demos of the body x task imitated are
+collected first (collect.py).
 """
 import dataclasses
 import json
@@ -32,7 +33,7 @@ def result_config(ic, method, oc):
 
 
 def done_here(rows, demo, view, returns, ic, oc, weights):
-    """The (method, seed) pairs of a cell's rows that count (rundir.finished) under these settings and weights."""
+    """The (method, seed) pairs of a cell's rows that count (finished) under these settings and weights."""
     configs = {m: result_config(ic, m, oc) for m in goal_inference.METHODS}
     return {(r["method"], r["seed"]) for r in finished(rows, demo, view, returns, configs, weights)}
 
@@ -50,8 +51,8 @@ def check_online_seeds(ic, oc, demos=10):
 
 
 def imitate(run_dir, demo, view, ic, searches=(), oc=None, zero_shot=True, done=None):
-    """For one demo folder: GIIL-ZS on every demo (unless not zero_shot), then each goal search named (goal_inference.SEARCHES' keys)
-    for its seeds, each seed beside GIIL-ZS (demo 0) on the same evaluation seeds. Appends each evaluation to
+    """For one demo folder: GIIL-ZS on every demo (unless not zero_shot), then each goal search named (SEARCHES' keys) for
+    its seeds, each seed beside GIIL-ZS (demo 0) on the same evaluation seeds. Appends each evaluation to
     runs/<name>/results.jsonl, each row with the agent's weights (weights_id), and returns the rows. done:
     (method, seed) pairs not run again (tables.py); None: those results.jsonl has for these demos, settings and weights
     (a rerun after Ctrl-C goes on, appending no duplicates; a retrained agent runs again)."""

@@ -218,7 +218,7 @@ def evaluate_actor(cell, world_model, actor, episodes, steps, seed):
     body, task = cell["cfgs"]["train"].env, cell["task"]
     env_list = [envs.make_env(body, task) for _ in range(episodes)]
     returns, _ = evaluate.run_episodes(env_list, {"world_model": world_model, "actor": actor}, no_goal(episodes, cell["device"]),
-                                       steps, cell["cfgs"]["wm"].obs, 20_000 + 100 * seed)
+                                       steps, cell["cfgs"]["wm"].obs, runner.EVAL_SEED + 100 * seed)  # GIIL's evaluation seeds
     for env in env_list:
         env.close()
     return [evaluate.episode_score(task, r, steps) for r in returns]
