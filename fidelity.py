@@ -56,8 +56,9 @@ GAPS = (1, 5, 15, 50, 100)  # --distance: steps from a state to its goal
 
 
 def sample_goals(vae, p, n, generator=None, scale=1.0):
-    """Ours, for the ranking and the probes: n draws s^g ~ q(s | p) of the goal VAE `vae` as goal vectors, from `generator`'s standard normal noise multiplied by `scale` (a
-    Gaussian's std times scale; a categorical z's draws flatter for scale > 1): p (1, D) -> (n, deter + stoch)."""
+    """Ours, for the ranking and the probes: n draws s^g ~ q(s | p) of the goal VAE `vae` as goal vectors, from
+    `generator`'s standard normal noise multiplied by `scale` (a Gaussian's std times scale; a categorical z's draws
+    flatter for scale > 1): p (1, D) -> (n, deter + stoch)."""
     assert p.shape == (1, vae.feat_dim), p.shape
     mean_h, std_h, stats = vae.distribution(p)
     noise = torch.randn(n, vae.deter + vae.stoch, generator=generator).to(mean_h.device)
