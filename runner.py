@@ -6,6 +6,7 @@ goal_inference.py (Eq. 5 and the goal searches' registry, SEARCHES); missing dem
 collected first (collect.py).
 """
 import dataclasses
+import hashlib
 import json
 import os
 import re
@@ -85,20 +86,21 @@ def imitate(run_dir, demo, view, ic, searches=(), oc=None, zero_shot=True, done=
     def evaluate_goal(method, seed, goal, k, t0, **extra):
         """eval_episodes episodes at once with goal (F,), environment seeds EVAL_SEED + 100 seed + e: a search's seed s and
         GIIL-ZS (demo 0) seed s meet the same start states. Seed 0's median-scoring episode (a representative one, its
-        index in the row's video_episode) is written as a video beside demo k, but for GIIL-ZS (demo 0): its seed 0 is
-        GIIL-ZS's demo 0, goal and start alike, already written."""
+        index in the row's video_episode) is written as a video (video_name) beside demo k, but for GIIL-ZS (demo 0): its
+        seed 0 is GIIL-ZS's demo 0, goal and start alike, already written."""
         render = bool(ic.video) and seed == 0 and method != "GIIL-ZS (demo 0)"
         env_list = [envs.make_env(tc.env, task) for _ in range(ic.eval_episodes)]
         returns, frames = evaluate.run_episodes(env_list, models, goal[None].expand(ic.eval_episodes, -1), ic.eval_steps,
                                                 cfgs["wm"].obs, EVAL_SEED + 100 * seed, render)
         scores = [evaluate.episode_score(task, r, ic.eval_steps) for r in returns]
-        if render:
-            name = re.sub(r"[^A-Za-z0-9-]+", "_", method)  # GIIL-ZS, GIIL-FT, GIIL-online: no shell quoting needed
-            extra["video_episode"] = int(np.argsort(scores)[len(scores) // 2])
-            evaluate.write_video(os.path.join(out_dir, f"{demo}_{view}_{name}_s{seed}.mp4"), demos[k]["pixels"], frames[extra["video_episode"]])
         row = {"agent": tc.env, "demo": demo, "view": view, "task": task, "setting": where, "method": method, "seed": seed,
-               "score": float(np.mean(scores)), "episode_scores": scores, "time": round(time.time() - t0, 1), "demo_returns": demo_returns,
+               "score": float(np.mean(scores)), "episode_scores": scores, "time": None, "demo_returns": demo_returns,
                "config": result_config(ic, method, oc), "weights": weights, **extra}
+        if render:
+            row["video_episode"] = int(np.argsort(scores)[len(scores) // 2])
+            row["video"] = video_name(row)
+            evaluate.write_video(os.path.join(out_dir, row["video"]), demos[k]["pixels"], frames[row["video_episode"]])
+        row["time"] = round(time.time() - t0, 1)  # the video's writing included
         rundir.append_jsonl(results_path, row)
         rows.append(row)
         done.add((method, seed))
@@ -165,6 +167,15 @@ def load_results(run_dir):
 def row_key(r):
     """What tells two result rows apart: cell, method, seed, demos (their returns), settings and the agent's weights."""
     return (r["demo"], r["view"], r["method"], r["seed"], json.dumps(r.get("demo_returns")), json.dumps(r.get("config")), r.get("weights"))
+
+
+def video_name(row):
+    """A row's video, named readably by its cell, method and seed, and by 8 hex digits of the rest of its row_key (the demos'
+    returns, settings and weights): a rerun with other settings or another agent's weights keeps the kept rows' videos.
+    The row names its video ("video"), e.g. walker_run_side_GIIL-FT_s0_1f2e3d4c.mp4."""
+    method = re.sub(r"[^A-Za-z0-9-]+", "_", row["method"])  # GIIL-ZS, GIIL-FT, GIIL-online: no shell quoting needed
+    tag = hashlib.sha256(json.dumps(row_key(row)[4:]).encode()).hexdigest()[:8]
+    return f"{row['demo']}_{row['view']}_{method}_s{row['seed']}_{tag}.mp4"
 
 
 def latest(rows_in):

@@ -969,3 +969,25 @@ def test_an_episode_that_is_not_what_its_folder_says_is_named(smoke_data, tmp_pa
     np.savez(path, **episode)
     with pytest.raises(ValueError, match=r"key 'action' must lie in \[-1, 1\], has 1e\+06 at step 3"):
         collect.load_folder(os.path.join(data, "walker"), ("action",))
+
+
+# --- 10. nothing kept is replaced without asking (issue 96) ---
+
+def test_a_rerun_with_other_settings_or_weights_keeps_the_kept_rows_videos(smoke_run, tmp_path):
+    """A video's name carries its cell, method and seed readably and a tag of the rest of its row's identity (demos,
+    settings, weights): a rerun with other --eval-episodes, or by a retrained agent, writes videos of its own."""
+    run = copy_run(smoke_run, tmp_path)
+    folder = os.path.join(run, "imitate")
+    first = runner.imitate(run, "walker_run", "side", SMOKE_IMITATE)
+    kept = snapshot(folder)
+    assert list(kept) == [r["video"] for r in first if "video" in r] and list(kept)[0].startswith("walker_run_side_GIIL-ZS_s0_")
+    other = runner.imitate(run, "walker_run", "side", goal_inference.ImitateConfig(**{**presets.PRESETS["imitate"]["smoke"], "eval_episodes": 2}))
+    path = os.path.join(run, "checkpoint.pt")
+    ckpt = torch.load(path, weights_only=True)
+    ckpt["models"]["actor"] = {k: v + 1e-3 for k, v in ckpt["models"]["actor"].items()}  # as a resumed training would
+    torch.save(ckpt, path)
+    retrained = runner.imitate(run, "walker_run", "side", SMOKE_IMITATE)
+    now = snapshot(folder)
+    assert {k: now[k] for k in kept} == kept  # the kept rows' videos untouched
+    videos = [r["video"] for r in first + other + retrained if "video" in r]
+    assert len(set(videos)) == len(videos) == 3 and sorted(now) == sorted(videos)
