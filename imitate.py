@@ -37,11 +37,7 @@ def main():
     # before anything runs: the run's agent is the body --env names (with --run) and what its folder's name says
     rundir.run_checkpoint(run, env=args.env)
     run = checkpoint.work_folder(run)
-    lock = runner.cell_lock(run, args.demo, args.view)
-    with rundir.claim(lock) as other:  # as a tables.py cell: one process at a time
-        if other:
-            raise ValueError(f"process {other} is running {args.demo} ({args.view} view) on {run} now ({lock}): wait for it to end; "
-                             f"the same command then goes on from its rows")
+    with runner.running_cell(run, args.demo, args.view):  # as a tables.py cell: one process at a time
         imitate(run, args.demo, args.view, ic, [m for m, s in SEARCHES.items() if getattr(args, s.flag)], oc)
 
 

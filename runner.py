@@ -5,6 +5,7 @@ videos and plots, and the flags of ImitateConfig and OnlineConfig; a cell's lock
 goal_inference.py (Eq. 5 and the goal searches' registry, SEARCHES); missing demos of the body x task imitated are
 collected first (collect.py).
 """
+import contextlib
 import dataclasses
 import hashlib
 import json
@@ -191,8 +192,21 @@ def finished(rows, demo, view, returns, configs, weights):
 
 
 def cell_lock(run_dir, demo, view):
-    """The lock file of a cell while a process runs it (claim; tables.py's cells, imitate.py --demo)."""
+    """The lock file of a cell while a process runs it, any of its methods (claim; tables.py's cells, imitate.py --demo,
+    the baselines' cells)."""
     return os.path.join(rundir.no_link(os.path.join(run_dir, "imitate")), f"{demo}_{view}.lock")
+
+
+@contextlib.contextmanager
+def running_cell(run_dir, demo, view):
+    """Holds the cell's lock (cell_lock) while the block runs it (imitate.py, the baselines' --demo): a second process
+    on the cell stops in one line naming the one that runs it (tables.py and the baselines' --settings skip it instead)."""
+    lock = cell_lock(run_dir, demo, view)
+    with rundir.claim(lock) as other:
+        if other:
+            raise ValueError(f"process {other} is running {demo} ({view} view) on {run_dir} now ({lock}): wait for it to end; "
+                             f"the same command then goes on from its rows")
+        yield
 
 
 def parse_shard(text):

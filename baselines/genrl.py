@@ -346,8 +346,9 @@ def cell_parser(description, cls, presets):
 
 
 def run_cells(parser, run_cell, method, cls, presets):
-    """A baseline's command: --demo (one cell) or --settings (each of their cells, one process at a time per cell: a
-    second process, or another --shard, skips a cell whose lock file a live process holds)."""
+    """A baseline's command: --demo (one cell) or --settings (each of their cells). One process at a time runs a cell,
+    any of its methods (runner.cell_lock, imitate.py's and tables.py's lock): --demo stops in one line while another runs
+    it (runner.running_cell), --settings skips it."""
     args = parser.parse_args()
     rundir.use_threads(args.threads)
     if bool(args.demo) == bool(args.settings):
@@ -360,14 +361,15 @@ def run_cells(parser, run_cell, method, cls, presets):
     rundir.run_checkpoint(args.run)
     args.run = checkpoint.work_folder(args.run)
     if args.demo:
-        return run_cell(args.run, args.demo, args.view or "side", cfg, args.data)
+        with runner.running_cell(args.run, args.demo, args.view or "side"):
+            return run_cell(args.run, args.demo, args.view or "side", cfg, args.data)
     settings, shard = runner.parse_settings(args.settings), runner.parse_shard(args.shard)
     agent = checkpoint.load_run(args.run)[0]["train"].env
     for task, where in [c for c in envs.cells(agent) if c[1] in settings][shard[0]::shard[1]]:
         demo, view = envs.demo_of(agent, task, where)
-        with rundir.claim(os.path.join(args.run, "baselines", f"{method}_{demo}_{view}.lock")) as other:
+        with rundir.claim(runner.cell_lock(args.run, demo, view)) as other:
             if other:
-                print(f"{demo} ({view} view): process {other} is running {method} on this cell now: skipped here")
+                print(f"{demo} ({view} view): process {other} is running this cell now ({runner.cell_lock(args.run, demo, view)}): {method} skipped here")
             else:
                 run_cell(args.run, demo, view, cfg, args.data)
 

@@ -579,6 +579,38 @@ def test_a_cell_runs_in_one_process_at_a_time(smoke_run, tmp_path, monkeypatch):
     assert len(rundir.read_jsonl(os.path.join(run, "results.jsonl"))) == 2 + 2 * SMOKE_IMITATE.seeds and not os.path.exists(lock)
 
 
+@pytest.mark.parametrize("name", ["genrl", "aime_nob"])
+def test_a_baseline_runs_a_cell_in_one_process_at_a_time(name, smoke_run, tmp_path, monkeypatch, capsys):
+    """Two baseline processes on one cell (or a baseline beside imitate.py or a table on it) take the cell's lock that
+    imitate.py does: --demo stops in one line, --settings skips the cell; neither trains a seed nor appends a row."""
+    from baselines import aime_nob, genrl
+
+    baseline, script = {"genrl": genrl, "aime_nob": aime_nob}[name], f"baselines/{name}.py"
+    run = copy_run(smoke_run, tmp_path)
+    lock = runner.cell_lock(run, "walker_stand", "side")
+    other = subprocess.Popen(["sleep", "60"])
+    monkeypatch.setattr(rundir, "use_threads", lambda threads: None)
+    try:
+        os.makedirs(os.path.dirname(lock))
+        with open(lock, "w") as f:
+            f.write(str(other.pid))
+        monkeypatch.setattr(sys, "argv", [script, "--demo", "walker_stand", "--run", run, "--preset", "smoke"])
+        with pytest.raises(ValueError, match=rf"^process {other.pid} is running walker_stand \(side view\) on .*run now .*walker_stand_side.lock\): "
+                                             r"wait for it to end; the same command then goes on from its rows$"):
+            baseline.main()
+        monkeypatch.setattr(sys, "argv", [script, "--settings", "SE-SV", "--shard", "0/4", "--run", run, "--preset", "smoke"])  # that cell alone
+        baseline.main()
+        assert f"walker_stand (side view): process {other.pid} is running this cell now" in capsys.readouterr().out
+        assert not os.path.exists(os.path.join(run, "results.jsonl")) and not os.path.exists(os.path.join(run, "baselines"))
+        assert open(lock).read() == str(other.pid)
+    finally:
+        other.kill()
+        other.wait()
+    monkeypatch.setattr(sys, "argv", [script, "--demo", "walker_stand", "--run", run, "--preset", "smoke"])
+    baseline.main()  # its process gone: the lock is stale, the cell runs and its lock goes
+    assert len(rundir.read_jsonl(os.path.join(run, "results.jsonl"))) == presets.PRESETS[name]["smoke"]["seeds"] and not os.path.exists(lock)
+
+
 def test_paper_preset_needs_a_gpu_or_allow_cpu_and_sigterm_releases_the_lock(smoke_data, tmp_path, monkeypatch):
     monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
     flags = ["train.py", "--preset", "paper", "--data", smoke_data, "--run-dir", str(tmp_path / "paper")]
