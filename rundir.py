@@ -1,7 +1,8 @@
 """What every run checks and keeps safe (train.py, imitate.py, the experts): its numeric flags, checked at start-up, and
 its run directory (runs/<name>/): one writer at a time, and logs that a killed run leaves usable.
 
-check_flags   a one-line error naming the flag of a number out of its range (--steps 0, --holdout-every 1, --goal-lr 1e3)
+check_flags   a one-line error naming the flag of a number out of its range (--steps 0, --holdout-every 1, --goal-lr 1e3,
+              --seeds 1e20: a count is at most MAX_COUNT)
 lock          runs/<name>/lock (O_EXCL, the writer's pid): a second trainer stops in one line; a dead one's is taken over
 run_checkpoint  a run's checkpoint, refused when it is not what the command expects (--env, agents/<body>, runs/<name>)
 work_path     where a run's results go (runs/agent_<body> for a shipped agent)
@@ -40,10 +41,14 @@ UMASK = os.umask(0o022)  # the process's umask, read once (os.umask sets it as i
 os.umask(UMASK)
 
 
+MAX_COUNT = 10**6  # the most any int flag takes where its range has no top (ours: the presets' largest is 500 000 expert
+# steps; --seeds 99999999999999999999 was accepted and ran for hours)
+
+
 def check_flags(config, prefix=""):
     """One-line ValueError naming the flag (--<prefix><field>) of a numeric field of the dataclass `config` out of range:
     its class's `ranges` ((low, high) inclusive, None unbounded, or "> 0"), else a learning rate (a field ending in lr)
-    in (0, 1), a count (an int) >= 1, any other float >= 0."""
+    in (0, 1), a count (an int) >= 1, any other float >= 0; an int unbounded there is at most MAX_COUNT."""
     ranges = getattr(type(config), "ranges", {})
     for field in dataclasses.fields(config):
         name, value = field.name, getattr(config, field.name)
@@ -55,8 +60,9 @@ def check_flags(config, prefix=""):
             ok, want = 0 < value < 1, "a learning rate in (0, 1)"
         else:
             low, high = ranges.get(name, (1 if isinstance(value, int) else 0, None))
-            ok = math.isfinite(value) and low <= value <= (math.inf if high is None else high)
-            want = f">= {low}" if high is None else f"in [{low}, {high}]"
+            top = MAX_COUNT if high is None and isinstance(value, int) else high
+            ok = math.isfinite(value) and low <= value <= (math.inf if top is None else top)
+            want = f"in [{low}, {high}]" if high is not None else f">= {low}" if value < low or top is None else f"<= {top}"
         if not ok:
             raise ValueError(f"--{prefix}{name.replace('_', '-')} {value}: must be {want}")
 
@@ -199,8 +205,8 @@ def threads_flag(parser):
 
 def use_threads(threads):
     """torch.set_num_threads(--threads), checked like every count."""
-    if threads < 1:
-        raise ValueError(f"--threads {threads}: must be >= 1")
+    if not 1 <= threads <= MAX_COUNT:
+        raise ValueError(f"--threads {threads}: must be {'>= 1' if threads < 1 else f'<= {MAX_COUNT}'}")
     torch.set_num_threads(threads)
 
 

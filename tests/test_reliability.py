@@ -1023,3 +1023,37 @@ def test_a_rerun_with_other_settings_or_weights_keeps_the_kept_rows_videos(smoke
     assert {k: now[k] for k in kept} == kept  # the kept rows' videos untouched
     videos = [r["video"] for r in first + other + retrained if "video" in r]
     assert len(set(videos)) == len(videos) == 3 and sorted(now) == sorted(videos)
+
+
+def test_a_count_has_an_upper_bound_that_every_preset_keeps(smoke_run, tmp_path):
+    """--seeds 99999999999999999999 ran for hours: an int flag whose range has no top is at most rundir.MAX_COUNT, named
+    in one line; every preset and default of every config keeps to it."""
+    import dataclasses
+
+    import online
+    import policy
+    from baselines import aime_nob, genrl
+
+    huge = 99999999999999999999
+    with pytest.raises(ValueError, match=rf"^--seeds {huge}: must be <= 1000000$"):
+        rundir.check_flags(dataclasses.replace(SMOKE_IMITATE, seeds=huge))
+    with pytest.raises(ValueError, match=r"^--ac-horizon 1000001: must be <= 1000000$"):
+        rundir.check_flags(policy.ActorCriticConfig(horizon=10**6 + 1), "ac-")
+    with pytest.raises(ValueError, match=rf"^--seed {huge}: must be <= 1000000$"):  # a range (0, None) too
+        rundir.check_flags(checkpoint.TrainConfig(seed=huge))
+    with pytest.raises(ValueError, match=rf"^--seeds {huge}: must be <= 1000000$"):
+        genrl.GenRLConfig(seeds=huge)
+    with pytest.raises(ValueError, match=rf"^--threads {huge}: must be <= 1000000$"):
+        rundir.use_threads(huge)
+    rundir.check_flags(checkpoint.TrainConfig(seed=10**6))  # the bound itself is allowed
+    out = subprocess.run([sys.executable, "tables.py", "--run", copy_run(smoke_run, tmp_path), "--seeds", str(huge)], cwd=ROOT,
+                         capture_output=True, text=True)
+    assert out.returncode == 1 and out.stderr == f"error: --seeds {huge}: must be <= 1000000\n"
+    for preset in ("smoke", "cpu", "paper"):
+        for name, (cls, prefix) in {**checkpoint.COMPONENTS, "imitate": (goal_inference.ImitateConfig, ""), "online": (online.OnlineConfig, "online-"),
+                                    "collect": (collect.CollectConfig, "")}.items():
+            rundir.check_flags(cls(**presets.PRESETS[name][preset]), prefix)
+    for name, cls in (("genrl", genrl.GenRLConfig), ("aime_nob", aime_nob.AIMENoBConfig)):
+        for preset in presets.PRESETS[name]:
+            cls(**presets.PRESETS[name][preset])  # checked as it is made
+    rundir.check_flags(experts.ExpertConfig())
