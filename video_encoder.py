@@ -60,7 +60,7 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from envs import BODIES, SETTINGS, TASKS, VIEWS, cross_body
+from envs import BODIES, EPISODE_STEPS, SETTINGS, TASKS, VIEWS, cross_body
 
 WINDOW = 8  # k: InternVideo2 in GenRL, 8-frame windows at stride 1 (Mazzaglia et al. 2024)
 SIZE = 64  # renders are 64x64 (envs.py)
@@ -211,6 +211,9 @@ class TorchScriptEncoder:
         self.size = int(getattr(self.module, "input_size", 224))  # InternVideo2: 224 px (Wang et al. 2024)
         if self.window < 1 or self.size < 1:
             raise ValueError(f"{path} says window {self.window}, input_size {self.size}: both must be >= 1 (frames per window, pixels)")
+        if self.window > EPISODE_STEPS + 1:  # frames it would repeat, each taking (3, S, S) floats in every row's input
+            raise ValueError(f"{path} says window {self.window}, more than the {EPISODE_STEPS + 1} frames of an episode (envs.EPISODE_STEPS "
+                             f"steps): set the module's window to at most {EPISODE_STEPS + 1}")
         with open(path, "rb") as f:
             digest = hashlib.file_digest(f, "sha256").hexdigest()
         self.name = f"torchscript:{os.path.basename(path)}:{digest[:12]}"

@@ -16,6 +16,7 @@ import torch
 
 import checkpoint
 import collect
+import envs
 import evaluate
 import experts
 import goal_vae
@@ -1057,3 +1058,26 @@ def test_a_count_has_an_upper_bound_that_every_preset_keeps(smoke_run, tmp_path)
         for preset in presets.PRESETS[name]:
             cls(**presets.PRESETS[name][preset])  # checked as it is made
     rundir.check_flags(experts.ExpertConfig())
+
+
+@pytest.mark.filterwarnings("ignore:`torch.jit:DeprecationWarning")
+def test_an_encoder_window_longer_than_an_episode_is_refused_before_any_memory_is_taken(tmp_path):
+    """A TorchScript video model saying window 10**6 (its probe input alone would take terabytes): one line naming the fix."""
+    import video_encoder
+
+    class Model(torch.nn.Module):
+        def __init__(self, window):
+            super().__init__()
+            self.window, self.input_size = window, 8
+
+        def forward(self, x):  # (N, k, 3, S, S) -> (N, 2)
+            return torch.stack([x.mean(dim=(1, 2, 3, 4)), torch.ones(len(x))], 1)
+
+    for window in (10**6, envs.EPISODE_STEPS + 2):
+        path = str(tmp_path / "long_window.pt")
+        torch.jit.save(torch.jit.script(Model(window)), path)
+        with pytest.raises(ValueError, match=rf"^{path} says window {window}, more than the 501 frames of an episode \(envs.EPISODE_STEPS steps\): "
+                                             r"set the module's window to at most 501$"):
+            video_encoder.load_encoder(path)
+    torch.jit.save(torch.jit.script(Model(envs.EPISODE_STEPS + 1)), path)
+    assert video_encoder.load_encoder(path).window == 501  # a whole episode's frames: allowed
