@@ -226,7 +226,9 @@ def run_checkpoint(run_dir, device="cpu", env=None):
     """The checkpoint of a trained run, checked against what the command expects of it before anything runs: the body
     `env` where the command names one (--env), and what the folder's name says: agents/<body> holds that body's agent,
     runs/<env>_<obs>_<preset>_s<seed> that run (checkpoint.default_run_dir). A folder of another name may hold any agent;
-    phase 2 then tags its rows with the checkpoint's body. Errors name the file and the fix."""
+    phase 2 then tags its rows with the checkpoint's body. A run still in training is refused (not_training): every
+    command and probe that reads a run reads it here (checkpoint.load_run). Errors name the file and the fix."""
+    not_training(run_dir)
     path, folder = os.path.join(run_dir, "checkpoint.pt"), os.path.normpath(run_dir)
     name, shipped = os.path.basename(folder), os.path.basename(os.path.dirname(folder)) == AGENTS
     named = RUN_NAME.fullmatch(name)

@@ -1081,3 +1081,25 @@ def test_an_encoder_window_longer_than_an_episode_is_refused_before_any_memory_i
             video_encoder.load_encoder(path)
     torch.jit.save(torch.jit.script(Model(envs.EPISODE_STEPS + 1)), path)
     assert video_encoder.load_encoder(path).window == 501  # a whole episode's frames: allowed
+
+
+def test_a_run_in_training_is_refused_by_every_reader_of_its_checkpoint(smoke_run, tmp_path):
+    """The probes, evaluate.py and every command read a run through rundir.run_checkpoint (checkpoint.load_run,
+    evaluate.read_goal_reaching): a run still in training is refused there, before anything is measured."""
+    run = copy_run(smoke_run, tmp_path)
+    trainer = subprocess.Popen(["sleep", "60"])
+    try:
+        with open(os.path.join(run, "lock"), "w") as f:
+            f.write(str(trainer.pid))
+        message = rf"^{run} is being trained now by process {trainer.pid} \(.*lock\): its checkpoint is not the final agent; wait for the training to end"
+        with pytest.raises(ValueError, match=message):
+            checkpoint.load_run(run)  # what the probes load a run with
+        with pytest.raises(ValueError, match=message):
+            evaluate.read_goal_reaching(run)  # evaluate.py's and probes/goal_variance.py --benchmark's
+        for probe in (["probes/imagination_gap.py", run], ["probes/goal_variance.py", "--benchmark", run]):
+            out = subprocess.run([sys.executable] + probe, cwd=ROOT, capture_output=True, text=True)
+            assert out.returncode == 1 and f"is being trained now by process {trainer.pid}" in out.stderr.splitlines()[-1], out.stderr[-2000:]
+    finally:
+        trainer.kill()
+        trainer.wait()
+    assert checkpoint.load_run(run)[2]["step"] == 6 and evaluate.read_goal_reaching(run)["weights"]  # the trainer gone: read as before
