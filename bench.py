@@ -6,6 +6,7 @@ import time
 
 import numpy as np
 
+import configs
 import envs
 
 
@@ -59,16 +60,14 @@ def component_updates(preset="cpu", obs_dim=24, action_dim=6, p_dim=512, device=
     {name: zero-argument function}: forward, backward, gradient clipping and an Adam step, as train.py does them."""
     import torch
 
-    import checkpoint
     import cloning
     import distance
     import goal_vae
     import policy
     import world_model as W
-    from presets import PRESETS
     from tests.fixtures import random_batch
 
-    cfg = {name: checkpoint.COMPONENTS[name][0](**PRESETS[name][preset]) for name in ("wm", "goal", "dist", "ac", "cloning")}
+    cfg = {name: configs.COMPONENTS[name][0](**configs.PRESETS[name][preset]) for name in ("wm", "goal", "dist", "ac", "cloning")}
     obs_shape = obs_dim if cfg["wm"].obs == "state" else (64, 64, 3)
     wm = W.WorldModel(cfg["wm"], obs_shape, action_dim)
     vae = goal_vae.GoalVAE(cfg["goal"], p_dim, cfg["wm"].deter, wm.latent)
@@ -120,7 +119,6 @@ def bench_components():
     import torch
     from torch.utils.flop_counter import FlopCounterMode
 
-    import checkpoint
     import rundir
 
     torch.set_num_threads(1)
@@ -146,7 +144,7 @@ def bench_components():
         print(line + f" | {flops[name] / 1e9:.2f} GFLOP at {flops[name] / np.mean(times[name, used]) / 1e9:.0f} GFLOP/s")
     if not fast:
         print("phase 1        (oneDNN fp32 matmuls not used: on this CPU they would not compute in fp32, rundir.fast_matmul)")
-    bc_steps = checkpoint.COMPONENTS["cloning"][0]().bc_steps
+    bc_steps = configs.COMPONENTS["cloning"][0]().bc_steps
     count = {name: bc_steps if name.startswith("ours cloning") else 1 for name in updates}  # the first cloning step rides on Eq. 4's
     total_flops = sum(count[n] * flops[n] for n in updates)
     total_s = sum(count[n] * np.mean(times[n, used]) for n in updates)
@@ -169,8 +167,8 @@ def bench_world_models(variants=(("Gaussian z (cpu preset)", {}), ("categorical 
     rundir.fast_matmul()
     updates = {}
     for name, overrides in variants:
-        wm = W.WorldModel(W.WorldModelConfig(**overrides), 24, 6)
-        vae = goal_vae.GoalVAE(goal_vae.GoalVAEConfig(), 512, wm.cfg.deter, wm.latent)
+        wm = W.WorldModel(configs.WorldModelConfig(**overrides), 24, 6)
+        vae = goal_vae.GoalVAE(configs.GoalVAEConfig(), 512, wm.cfg.deter, wm.latent)
         batch = random_batch("state", 24, 6, wm.cfg.batch, wm.cfg.seq_len, p_dim=512)
         opt = torch.optim.Adam([*wm.parameters(), *vae.parameters()], lr=3e-4)
 
@@ -242,11 +240,16 @@ def train_updates_per_s(tree, data, threads, logs=4, every=10):
 FT_UPDATE = """
 import dataclasses, sys, time
 import torch
-import collect, ot_reward, rundir
+import collect, rundir
 try:
     import goal_inference as phase2
 except ImportError:
     import imitate as phase2  # before goal_inference.py
+try:  # every config in configs.py, or a commit's from before it
+    from configs import ImitateConfig, OTConfig
+except ImportError:
+    from ot_reward import OTConfig
+    ImitateConfig = phase2.ImitateConfig
 try:
     from checkpoint import load_run
 except ImportError:
@@ -255,7 +258,7 @@ torch.set_num_threads(1)
 rundir.fast_matmul()
 cfgs, models, _ = load_run(sys.argv[1], "cpu")
 demo_p = [d["p"] for d in collect.load_folder(sys.argv[2], ("p",))]
-run = lambda n: phase2.finetune_goal(models, cfgs, dataclasses.replace(phase2.ImitateConfig(), steps=n), ot_reward.OTConfig(),
+run = lambda n: phase2.finetune_goal(models, cfgs, dataclasses.replace(ImitateConfig(), steps=n), OTConfig(),
                                      torch.as_tensor(demo_p[0][-1]), demo_p, 0, "cpu")
 run(3)
 start = time.perf_counter()
@@ -269,7 +272,11 @@ print((time.perf_counter() - start) / int(sys.argv[3]))
 COLLECT_EPISODE = """
 import sys, tempfile, time
 import collect
-cfg = collect.CollectConfig(explore_episodes=3, task_episodes=3)
+try:  # every config in configs.py, or a commit's from before it
+    from configs import CollectConfig
+except ImportError:
+    from collect import CollectConfig
+cfg = CollectConfig(explore_episodes=3, task_episodes=3)
 jobs = collect.episode_jobs("walker", cfg, tempfile.mkdtemp())
 explore, walk = [j for j in jobs if j[1]["kind"] == "explore"], [j for j in jobs if j[1]["kind"] == "walk"]
 for paths, job in (explore[0], walk[0]):
@@ -292,18 +299,22 @@ try:  # this layout, or a commit's from before baselines/
     from baselines import aime_nob, genrl
 except ImportError:
     import aime_nob, genrl
+try:  # every config in configs.py, or a commit's from before it
+    from configs import AIMENoBConfig, GenRLConfig
+except ImportError:
+    AIMENoBConfig, GenRLConfig = aime_nob.AIMENoBConfig, genrl.GenRLConfig
 torch.set_num_threads(1)
 cell = genrl.load_cell(sys.argv[1], "walker_walk", "side", sys.argv[4])
 models, cfgs, n = cell["models"], cell["cfgs"], int(sys.argv[3])
 if sys.argv[2] == "genrl":
-    gc = genrl.GenRLConfig()
+    gc = GenRLConfig()
     target = genrl.target_states(models, torch.as_tensor(cell["demos"][0]["p"]), gc.target_len)
     segments = checkpoint.body_segments(cfgs)
     run = lambda k: genrl.train_policy(models, cfgs, dataclasses.replace(gc, steps=k), target, segments, 0, "cpu")
 else:
     demo_p = torch.as_tensor(np.stack([d["p"] for d in cell["demos"]]))
     body, encoder = checkpoint.body_segments(cfgs), aime_nob.load_encoder("default")
-    run = lambda k: aime_nob.train_seed(cell, dataclasses.replace(aime_nob.AIMENoBConfig(), env_steps=k * 500), body, encoder, demo_p, 0)
+    run = lambda k: aime_nob.train_seed(cell, dataclasses.replace(AIMENoBConfig(), env_steps=k * 500), body, encoder, demo_p, 0)
 run(max(1, n // 4))
 start = time.perf_counter()
 run(n)
@@ -397,7 +408,7 @@ def ot_seconds(B=256, T=16, M=500, K=10, D=64, repeat=3):
     agent_p = torch.randn(B, T, D, generator=gen)
     demo_p = F.normalize(torch.randn(K, M, D, generator=gen), dim=-1)
     demo_offsets = torch.randint(0, M, (B,), generator=gen)
-    cfg = ot_reward.OTConfig()
+    cfg = configs.OTConfig()
     seconds = lambda **kwargs: timed(lambda: ot_reward.ot_reward(agent_p, demo_p, cfg, **kwargs), repeat, warmup=1)
     try:
         return {"B": B, "T": T, "M": M, "K": K, "D": D, "whole_demo_s": seconds(), "window_s": seconds(demo_offsets=demo_offsets)}
@@ -407,9 +418,7 @@ def ot_seconds(B=256, T=16, M=500, K=10, D=64, repeat=3):
 
 def bench_ot():
     """The OT reward (App. C): one call at GIIL-FT's cpu size and at a paper-like size, one thread."""
-    import goal_inference
-
-    cpu = goal_inference.ImitateConfig()
+    cpu = configs.ImitateConfig()
     for B, M in ((cpu.starts, envs.EPISODE_STEPS), (256, envs.EPISODE_STEPS)):
         r = ot_seconds(B=B, T=15, M=M, K=10, D=512, repeat=2)
         print(f"OT reward      B={B} trajectories x T=15 against K=10 demos of M={M} frames (D=512): {1000 * r['whole_demo_s']:.0f} ms (windowed: {1000 * r['window_s']:.0f} ms)")

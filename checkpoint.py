@@ -1,8 +1,7 @@
-"""Eq. 1's two levels share one phase-1 run: its configs and models, and its data.
+"""Eq. 1's two levels share one phase-1 run: its configs (configs.COMPONENTS) and models, and its data.
 
 Below train.py (phase 1), goal_inference.py (phase 2) and the baselines (baselines/), which import it and never each
 other:
-  TrainConfig, COMPONENTS  the configs of a run, one dataclass per component, and each one's flag prefix
   build_models, load_run   a run's models, fresh or from runs/<name>/checkpoint.pt (rundir.run_checkpoint checks it)
   stored_configs, check_weights  a checkpoint's configs and weights, checked before any model is built
   resume_from, save, stop_hint   phase 1's checkpoint: where a run goes on from (--resume), what it keeps, what a
@@ -17,55 +16,22 @@ import dataclasses
 import fcntl
 import json
 import os
-from typing import ClassVar
 
 import numpy as np
 import torch
 
-import cloning
 import collect
+import configs
 import distance
 import envs
 import goal_vae
 import policy
 import rundir
 import world_model
-from presets import DATA, PRESETS
+from configs import COMPONENTS, DATA, PRESETS
 from video_encoder import check_same_encoder, load_encoder
 
 
-@dataclasses.dataclass
-class TrainConfig:
-    # rundir.check_flags: the values a field may take where not a count (>= 1), a learning rate in (0, 1) or a float >= 0
-    ranges: ClassVar[dict] = {"seed": (0, None), "policy_start": (0, None), "wm_steps": (0, None), "holdout_every": (2, None)}
-    env: str = "walker"  # the agent's body
-    preset: str = "cpu"  # smoke | cpu | paper: sizes of every component and of D_body
-    seed: int = 0  # the training seed: torch's and the batches' draws
-    steps: int = 3000  # updates (ours: a CPU budget, docs/results.md; Dreamer-scale runs use ~1e5 and more)
-    # updates of the world model and goal VAE alone (Eq. 2, 3) before the `steps` of phase 1 (ours: a world-model stage, as
-    # V-D4RL's offline DreamerV2 and GenRL pretrain their world models before any behaviour learning)
-    wm_steps: int = 0
-    policy_start: int = 1000  # updates of phase 1 before the actor-critic starts (ours)
-    holdout_every: int = 20  # every 20th D_body episode is held out of training, for evaluate.evaluate_imagination (ours)
-    eval_episodes: int = 3  # goal-reaching benchmark (evaluate.py, ours): episodes per own-body demo goal
-    eval_steps: int = 500  # agent steps per goal-reaching episode (a whole episode)
-    eval_seed: int = 30_000  # the benchmark's first environment seed; another gives fresh start poses, to confirm a choice made on it
-    log_every: int = 100  # updates between rows of metrics.jsonl
-    checkpoint_every: int = 250  # updates between checkpoints (--resume goes on from the last)
-    data: str = "data"  # the datasets' folder (presets.DATA)
-    encoder: str = "default"  # video encoder of the features p_t (video_encoder.py)
-    threads: int = 1  # torch CPU threads (ours: these small models ran faster on 1 than on 2 with the cores shared, docs/results.md, Speed)
-
-
-# every component's config class and flag prefix ('' = no prefix); their presets are presets.PRESETS[<component>]
-COMPONENTS = {
-    "train": (TrainConfig, ""),
-    "wm": (world_model.WorldModelConfig, "wm-"),
-    "goal": (goal_vae.GoalVAEConfig, "goal-"),
-    "dist": (distance.DistanceConfig, "dist-"),
-    "ac": (policy.ActorCriticConfig, "ac-"),
-    "cloning": (cloning.CloningConfig, "ac-"),  # a term of the actor's loss: --ac-bc, --ac-bc-final, ...
-}
 # Switches measured worse and deleted, at the value that turned each off (docs/ablations.md names each one's result and
 # the commit that had it): a stored config that holds one at that value loads as before, one trained with it on is refused
 REMOVED = {"train": dict(act_temperature=0.0, cover_edges=0, fidelity_every=0),
@@ -224,7 +190,7 @@ def stop_hint(ckpt_path, saved, cfgs, name):
 
 def default_run_dir(env, preset, seed=0, obs=None):
     """runs/<env>_<obs>_<preset>_s<seed> (obs: the preset's unless given): where train.py writes and imitate.py reads."""
-    obs = obs or PRESETS["wm"][preset].get("obs", world_model.WorldModelConfig.obs)
+    obs = obs or PRESETS["wm"][preset].get("obs", configs.WorldModelConfig.obs)
     return os.path.join("runs", f"{env}_{obs}_{preset}_s{seed}")
 
 
@@ -287,7 +253,7 @@ def prepare_data(cfgs):
     complete = os.path.join(folder, collect.COMPLETE)
     has = json.load(open(complete)) if os.path.exists(complete) else {}  # missing, or a collection killed half-way
     if has:  # a field added to CollectConfig since that collection reads as its default
-        has = {**dataclasses.asdict(collect.CollectConfig()), **has}
+        has = {**dataclasses.asdict(configs.CollectConfig()), **has}
     counts = ("explore_episodes", "task_episodes")
     same_kind = all(has.get(k) == v for k, v in dataclasses.asdict(want).items() if k not in counts)
     # a smaller D_body of the same recipe (the preset's older, smaller default) grows; another kind passed by --data

@@ -9,30 +9,14 @@ With bc_advantage > 0 (ours, being measured: docs/ablations.md) each cloned acti
 advantage under the td reading's goal-conditioned value fit on real D_body sequences (distance.py), as GCIVL and
 HIQL weight their clone (Park et al. 2023, 2024); plain cloning imitates the average of D_body's actions for a goal.
 train.py adds bc * bc_loss to Eq. 4's actor loss (policy.policy_losses) and takes bc_steps - 1 more cloning steps per
-update (CloningConfig; its flags are --ac-bc...: a term of the actor's loss).
+update (configs.CloningConfig; its flags are --ac-bc...: a term of the actor's loss).
 """
-from dataclasses import dataclass
-from typing import ClassVar
 
 import numpy as np
 import torch
 from tqdm import tqdm
 
 import rundir
-
-
-@dataclass
-class CloningConfig:
-    # rundir.check_flags: the values a field may take where not a count (>= 1) or a float >= 0
-    ranges: ClassVar[dict] = {"bc_final": (0, 1), "bc_polish": (0, None)}
-    bc: float = 1.0  # weight of hindsight behaviour cloning beside Eq. 4's actor loss (ours, a deviation, bc_loss; 0 = Eq. 4 alone)
-    bc_final: float = 0.5  # share of bc_loss's goals from the episode's last frame, what the benchmark and GIIL-ZS give (ours)
-    bc_steps: int = 10  # actor steps on bc_loss per update: the first with Eq. 4's loss, the rest on bc_loss alone, each with fresh goals (ours)
-    bc_polish: int = 5000  # bc_loss steps of the actor alone on the frozen final world model and goal VAE, after the last update (ours; polish)
-    bc_polish_batches: int = 250  # D_body batches whose posterior states the polish computes once and cycles (ours; polish)
-    # beta of the clone's weights exp(beta A), A the advantage of the recorded action under the td reading's value (needs
-    # --dist-reading td; ours after GCIVL, Park et al. 2024, whose alpha is 10); 0: every action weighted alike (GCSL)
-    bc_advantage: float = 0.0
 
 
 WEIGHT_CLIP = 100.0  # exp(beta A) clipped above, OGBench's GCIVL / HIQL (Park et al. 2024)

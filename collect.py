@@ -31,8 +31,7 @@ import multiprocessing
 import os
 import signal
 import zipfile
-from dataclasses import asdict, dataclass, replace
-from typing import ClassVar
+from dataclasses import asdict, replace
 
 import numpy as np
 import torch
@@ -41,8 +40,8 @@ from tqdm import tqdm
 import envs
 import experts
 import rundir
+from configs import DATA, PRESETS, CollectConfig
 from envs import BODY_TASKS
-from presets import DATA, PRESETS
 from video_encoder import check_same_encoder, load_encoder
 
 KEYS = {"state": np.float32, "pixels": np.uint8, "action": np.float32, "reward": np.float32, "is_first": np.bool_, "p": np.float32}
@@ -50,25 +49,8 @@ META = ("encoder", "body", "task", "view", "source", "return")
 COMPLETE = "collection.json"  # written into data/<body>/ once all of D_body is on disk: its CollectConfig and episodes
 
 
-@dataclass
-class CollectConfig:
-    # rundir.check_flags: the values a field may take where not a count (>= 1), a learning rate in (0, 1) or a float >= 0
-    ranges: ClassVar[dict] = {"seed": (0, None)}
-    explore_episodes: int = 80  # D_body exploration episodes (ours; the paper: ~2000)
-    # D_body episodes per task in envs.BODY_TASKS (ours: each doubling from 40 raised goal reaching, docs/ablations.md,
-    # Phase 1; the paper: 1000, which makes exploration : task episodes 2 : 3 there, 1 : 6 here)
-    task_episodes: int = 160
-    demo_episodes: int = 10  # per (body, task, view): paper Sec. 5
-    episode_steps: int = envs.EPISODE_STEPS  # agent steps per episode
-    action_noise: float = 0.3  # std of the Gaussian noise on snapshot actions in D_body (ours)
-    # task episodes come from the snapshots at or after this fraction of each expert's last history step (ours; 0 = the whole
-    # history, kept: the later half alone did not raise the stickman's goal reaching, docs/ablations.md, Phase 1)
-    history_from: float = 0.0
-    seed: int = 0  # the collection's seed: every episode's own seed is derived from it and the episode's name
-
-
 def preset_config(preset):
-    """The CollectConfig of a preset (presets.py), for D_body and D_demo alike."""
+    """The CollectConfig of a preset (configs.py), for D_body and D_demo alike."""
     return CollectConfig(**PRESETS["collect"][preset])
 
 
@@ -368,7 +350,7 @@ def main():
     parser.add_argument("--demos", action="store_true", help="collect D_demo: every body x task x view")
     parser.add_argument("--features", action="store_true", help="recompute video features of everything under --data")
     parser.add_argument("--preset", choices=PRESETS["collect"], default="cpu")
-    parser.add_argument("--data", default=None, help="default: data, or data/smoke for --preset smoke (presets.DATA)")
+    parser.add_argument("--data", default=None, help="default: data, or data/smoke for --preset smoke (configs.DATA)")
     parser.add_argument("--workers", type=int, default=os.cpu_count())
     parser.add_argument("--encoder", default="default", help="'default' or a TorchScript video model file (video_encoder.py)")
     parser.add_argument("--task-episodes", type=int, default=None, help="D_body episodes per task (default: the preset's)")

@@ -43,6 +43,7 @@ import torch
 
 import checkpoint
 import collect
+import configs
 import envs
 import evaluate
 import ot_reward
@@ -295,7 +296,7 @@ def ranking(run, step, cfgs, models, settings, episodes, out):
             continue
         demo, view = envs.demo_of(agent, task, where)
         demo_p = np.stack([d["p"] for d in collect.load_folder(os.path.join(data, "demos", f"{demo}_{view}"), ("p",))])
-        row = {"run": run, "step": step, "task": task, "setting": where, **rank_goals(models, cfgs, task, demo_p, episodes, ot_reward.OTConfig())}
+        row = {"run": run, "step": step, "task": task, "setting": where, **rank_goals(models, cfgs, task, demo_p, episodes, configs.OTConfig())}
         rundir.append_jsonl(out, row)
         print(f"{where} {task}: Spearman(Eq. 5's J, real score) {row['spearman']:.2f} (cap {row['cap']:.2f}), real scores "
               f"{min(row['real']):.1f}..{max(row['real']):.1f}", flush=True)

@@ -28,37 +28,22 @@ tables.py (every cell, with the baselines).
 """
 import dataclasses
 import json
-from typing import Callable, ClassVar
+from typing import Callable
 
 import numpy as np
 import torch
 from tqdm import tqdm
 
+import configs
 import envs
 import online
 import ot_reward
 import policy
-import presets
 import rundir
 from video_encoder import load_encoder
 
 
-@dataclasses.dataclass
-class ImitateConfig:
-    # rundir.check_flags: the values a field may take where not a count (>= 1), a learning rate in (0, 1) or a float >= 0
-    ranges: ClassVar[dict] = {"video": (0, 1)}
-    preset: str = "cpu"  # smoke | cpu | paper: presets.py
-    steps: int = 300  # goal-finetuning updates (ours, a CPU budget)
-    starts: int = 64  # imagined trajectories per L_GI update (ours)
-    goal_lr: float = 3e-4  # Adam on g (ours; chosen on same-body cells, docs/ablations.md)
-    critic_lr: float = 8e-5  # V_ot, as the phase-1 critic (Dreamer V1)
-    seeds: int = 5  # GIIL-FT seeds (the paper: 3; 5 so that FT vs ZS(demo 0) is measured beyond the noise)
-    eval_episodes: int = 3  # episodes per GIIL-ZS goal and per goal search's seed
-    eval_steps: int = envs.EPISODE_STEPS  # agent steps per evaluation episode
-    video: int = 1  # write demo | agent side-by-side videos
-
-
-CHOICES = {"preset": tuple(presets.PRESETS["imitate"])}
+CHOICES = {"preset": tuple(configs.PRESETS["imitate"])}
 FINETUNE_FIELDS = ("steps", "starts", "goal_lr", "critic_lr", "seeds")  # what GIIL-FT alone reads
 EVALUATION_FIELDS = ("eval_episodes", "eval_steps")  # what every row depends on
 
@@ -119,9 +104,9 @@ class Cell:
     """What a goal search sees of one demo folder: the frozen agent, the settings, the demos and their zero-shot goals."""
     models: dict
     cfgs: dict
-    ic: ImitateConfig
-    oc: online.OnlineConfig
-    ot_cfg: ot_reward.OTConfig
+    ic: configs.ImitateConfig
+    oc: configs.OnlineConfig
+    ot_cfg: configs.OTConfig
     task: str
     demos: list  # the folder's episodes (collect.load_folder): "p" (T + 1, D) video features, "pixels"
     goals: list  # GIIL-ZS's goals q(s | p_T), one (F,) per demo

@@ -16,27 +16,12 @@ p_hat = normalise(decoder(s)) and a fixed concentration kappa: -log p = kappa * 
 The video features are unit vectors compared by cosine (App. C's OT cost), so the decoder is fit in that geometry.
 """
 import math
-from dataclasses import dataclass
-from typing import ClassVar
 
 import torch
 import torch.nn as nn
 import torch.nn.functional as F
 
 from world_model import mlp
-
-
-@dataclass
-class GoalVAEConfig:
-    # rundir.check_flags: the values a field may take where not a count (>= 1), a learning rate in (0, 1) or a float >= 0
-    ranges: ClassVar[dict] = {"grad_clip": "> 0", "min_std": "> 0", "kappa": "> 0"}
-    units: int = 256  # MLP width, the world model's (ours; Dreamer V1's MLP size: 400)
-    layers: int = 2  # hidden layers of the encoder and of the decoder (ours)
-    min_std: float = 0.1  # std = softplus(x) + 0.1, as the world model (Dreamer V1)
-    kappa: float = 10.0  # vMF concentration of p(p_t | s) (ours: recon kappa * (1 - cos) on the scale of the z KL)
-    posterior_recon: float = 1.0  # weight of the decoder's fit on world-model posterior states (ours, `loss`; 0 = Eq. 3 alone)
-    lr: float = 6e-4  # Adam, the world model's rate (Dreamer V1)
-    grad_clip: float = 100.0  # global gradient norm, Dreamer V1
 
 
 def gaussian_nll(x, mean, std):

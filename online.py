@@ -15,7 +15,6 @@ best by their mean OT score over all their episodes so far. The cpu schedule, 10
 (25,000 agent steps, 50,000 env steps: AIME-NoB's budget). The goal chosen is the best survivor; it is evaluated on
 environment seeds never used here.
 """
-import dataclasses
 
 import numpy as np
 import torch
@@ -24,14 +23,6 @@ from tqdm import tqdm
 import evaluate
 import ot_reward
 import rundir
-
-
-@dataclasses.dataclass
-class OnlineConfig:
-    # (candidates kept, episodes each) per round (ours): 10 x 2, 4 x 3, 2 x 9 = 50 episodes, AIME-NoB's 50,000 env steps
-    schedule: tuple = ((10, 2), (4, 3), (2, 9))
-    seed_base: int = 50_000  # refinement env seeds: seed_base + 1000 seed + i, apart from the evaluation's 20000 + 100 seed + e
-    seeds: int = 3  # GIIL-online seeds (as the paper's non-zero-shot methods), each paired with GIIL-ZS (demo 0)
 
 
 def budget(cfg, candidates):

@@ -33,26 +33,11 @@ ot.sinkhorn(method='sinkhorn_log') iteration for iteration, and ot.emd in the sm
 in the main path (per-pair ot.sinkhorn, ot.batch.solve_batch) was several times slower at bench.py's
 size, and so was the log-domain form of this loop against the scaling form (docs/results.md, Speed).
 """
-from dataclasses import dataclass
 
 import torch
 import torch.nn.functional as F
 
 EPS_MIN = 0.004  # float64: exp(-2/eps) = exp(-500) ~ 7e-218 stays above the smallest normal 2e-308, with room for u, v
-
-
-@dataclass
-class OTConfig:
-    eps: float = 0.01  # Sinkhorn entropic regularisation, absolute on the cosine cost in [0, 2] (ROT: epsilon 0.01 with POT)
-    iters: int = 100  # Sinkhorn iterations, a fixed count without early stop (ROT: niter=100)
-    scale: float = 1.0  # reward scale: sum_t r_t = -scale * <P, C> in [-2 scale, 0] (ROT: sinkhorn_rew_scale)
-    cpu_chunk_bytes: int = 2**20  # CPU: trajectories solved together so their float64 kernels fit the L2 cache (faster than one batch, `python bench.py --only ot`); GPU: one batch
-
-    def __post_init__(self):
-        if not self.eps >= EPS_MIN:
-            raise ValueError(f"OTConfig.eps={self.eps} is below {EPS_MIN}: exp(-C/eps) underflows float64 for cosine costs near 2")
-        if self.iters < 1:
-            raise ValueError(f"OTConfig.iters={self.iters}: Sinkhorn needs at least one iteration")
 
 
 def cosine_cost(x, y):

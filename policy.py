@@ -18,40 +18,12 @@ a critic V_ot(s) built with goal_dim = 0 (goal None), and the goal vector g as t
 import contextlib
 import copy
 import math
-from dataclasses import dataclass
-from typing import ClassVar
 
 import torch
 import torch.nn as nn
 import torch.nn.functional as F
 
 from world_model import mlp
-
-
-@dataclass
-class ActorCriticConfig:
-    # rundir.check_flags: the values a field may take where not a count (>= 1), a learning rate in (0, 1) or a float >= 0
-    ranges: ClassVar[dict] = {"goal_near": (0, 1), "gamma": (0, 1), "lambda_": (0, 1), "goal_mix": (0, 1),
-                              "slow_critic_rate": (0, 1), "return_norm_decay": (0, 1), "grad_clip": "> 0", "min_std": "> 0", "max_std": "> 0",
-                              "mean_scale": "> 0"}
-    units: int = 256  # MLP width (ours, a CPU budget; Dreamer V1: 400)
-    actor_layers: int = 2  # hidden layers of the actor's MLP (ours, a CPU budget; Dreamer V1: 4)
-    critic_layers: int = 2  # hidden layers of the critic's MLP (ours, a CPU budget; Dreamer V1: 3)
-    horizon: int = 15  # imagined steps H, Dreamer V1 (GenRL: 16)
-    gamma: float = 0.99  # discount of Eq. 4's imagined returns (Dreamer V1)
-    lambda_: float = 0.95  # TD(lambda), Dreamer V1
-    actor_lr: float = 3e-4  # Adam (ours; Dreamer V1: 8e-5)
-    critic_lr: float = 3e-4  # Adam (ours; Dreamer V1: 8e-5)
-    grad_clip: float = 100.0  # global gradient norm, Dreamer V1
-    mean_scale: float = 5.0  # pre-tanh mean = 5 tanh(x / 5), Dreamer V1's tanh-normal
-    min_std: float = 0.1  # lower bound of the actor's std (Dreamer V3)
-    max_std: float = 1.0  # upper bound of the actor's std (Dreamer V3)
-    entropy: float = 3e-4  # entropy bonus scale, Dreamer V3
-    slow_critic_rate: float = 0.02  # EMA rate of the slow critic that computes the targets, Dreamer V3
-    return_norm_decay: float = 0.99  # EMA decay of the 5-95 percentile range of returns, Dreamer V3
-    starts: int = 32  # imagination start states per update (ours: an update's time is linear in them; Dreamer V1: all 50x50 states)
-    goal_mix: float = 0.5  # share of goals from the goal encoder, the rest D_body posterior states (ours; sample_goals)
-    goal_near: float = 0.5  # share of goals from a later frame of the start state's own segment, reachable in the horizon (ours; sample_goals)
 
 
 def goal_share(linear, goal):

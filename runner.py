@@ -23,8 +23,7 @@ import envs
 import evaluate
 import goal_inference
 import online
-import ot_reward
-import presets
+import configs
 import rundir
 from video_encoder import check_same_encoder
 
@@ -49,7 +48,7 @@ def check_online_seeds(ic, oc, demos=10):
     last = EVAL_SEED + 100 * (max(ic.seeds, oc.seeds, demos) - 1) + ic.eval_episodes  # one past the evaluations' last seed
     if any(oc.seed_base + 1000 * s < last and EVAL_SEED < oc.seed_base + 1000 * (s + 1) for s in range(oc.seeds)):
         raise ValueError(f"--online-seed-base {oc.seed_base}: GIIL-online's episodes would start where the evaluation's do (environment "
-                         f"seeds {EVAL_SEED} to {last - 1}): pass {last} or more (default {online.OnlineConfig.seed_base})")
+                         f"seeds {EVAL_SEED} to {last - 1}): pass {last} or more (default {configs.OnlineConfig.seed_base})")
 
 
 def imitate(run_dir, demo, view, ic, searches=(), oc=None, zero_shot=True, done=None):
@@ -59,7 +58,7 @@ def imitate(run_dir, demo, view, ic, searches=(), oc=None, zero_shot=True, done=
     (method, seed) pairs not run again (tables.py); None: those results.jsonl has for these demos, settings and weights
     (a rerun after Ctrl-C goes on, appending no duplicates; a retrained agent runs again)."""
     rundir.check_flags(ic)
-    oc = oc or online.OnlineConfig(**presets.PRESETS["online"][ic.preset])
+    oc = oc or configs.OnlineConfig(**configs.PRESETS["online"][ic.preset])
     if "GIIL-online" in searches:
         check_online_seeds(ic, oc)
     device = "cuda" if torch.cuda.is_available() else "cpu"
@@ -111,7 +110,7 @@ def imitate(run_dir, demo, view, ic, searches=(), oc=None, zero_shot=True, done=
     for k, goal in enumerate(tqdm(goals if zero_shot else [], desc=f"GIIL-ZS {demo} {view}")):
         if ("GIIL-ZS", k) not in done:
             evaluate_goal("GIIL-ZS", k, goal, k, time.time())  # each row its own time: a table's cost is the sum
-    cell = goal_inference.Cell(models, cfgs, ic, oc, ot_reward.OTConfig(**presets.PRESETS["ot"][ic.preset]), task, demos, goals, device)
+    cell = goal_inference.Cell(models, cfgs, ic, oc, configs.OTConfig(**configs.PRESETS["ot"][ic.preset]), task, demos, goals, device)
     for method in searches:
         for seed in range(goal_inference.SEARCHES[method].seeds(ic, oc)):  # each seed independent of the others: its own RNG seeds
             if ("GIIL-ZS (demo 0)", seed) not in done:
@@ -133,23 +132,23 @@ def imitate(run_dir, demo, view, ic, searches=(), oc=None, zero_shot=True, done=
 
 
 def config_flags(parser):
-    """--<field> of every goal_inference.ImitateConfig field and --online-<field> of OnlineConfig's (the preset's value unless given);
+    """--<field> of every configs.ImitateConfig field and --online-<field> of OnlineConfig's (the preset's value unless given);
     parse_config and parse_online read them back."""
-    presets.config_flags(parser, goal_inference.ImitateConfig, choices=goal_inference.CHOICES)
-    presets.config_flags(parser, online.OnlineConfig, "online-", "online_")
+    configs.config_flags(parser, configs.ImitateConfig, choices=goal_inference.CHOICES)
+    configs.config_flags(parser, configs.OnlineConfig, "online-", "online_")
 
 
 def parse_config(args):
-    """-> (the goal_inference.ImitateConfig of the preset and the flags given, the fields given)."""
-    given = {f.name: getattr(args, f.name) for f in dataclasses.fields(goal_inference.ImitateConfig) if getattr(args, f.name) is not None}
-    return goal_inference.ImitateConfig(**{**presets.PRESETS["imitate"][given.get("preset", "cpu")], **given}), given
+    """-> (the configs.ImitateConfig of the preset and the flags given, the fields given)."""
+    given = {f.name: getattr(args, f.name) for f in dataclasses.fields(configs.ImitateConfig) if getattr(args, f.name) is not None}
+    return configs.ImitateConfig(**{**configs.PRESETS["imitate"][given.get("preset", "cpu")], **given}), given
 
 
 def parse_online(args, preset):
     """-> (GIIL-online's OnlineConfig of the preset and the --online-* flags given, the fields given)."""
-    given = {f.name: getattr(args, "online_" + f.name) for f in dataclasses.fields(online.OnlineConfig)
+    given = {f.name: getattr(args, "online_" + f.name) for f in dataclasses.fields(configs.OnlineConfig)
              if getattr(args, "online_" + f.name, None) is not None}
-    oc = online.OnlineConfig(**{**presets.PRESETS["online"][preset], **given})
+    oc = configs.OnlineConfig(**{**configs.PRESETS["online"][preset], **given})
     rundir.check_flags(oc, "online-")
     return oc, given
 

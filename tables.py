@@ -26,12 +26,11 @@ import collect
 import envs
 import evaluate
 import goal_inference
-import online
 import rundir
 import runner
 from baselines import aime_nob, genrl
 from envs import SETTINGS
-from presets import PRESETS
+from configs import PRESETS, AIMENoBConfig, GenRLConfig, OnlineConfig
 
 
 BASELINES = {"genrl": "GenRL", "aime-nob": "AIME-NoB"}  # --methods name -> method of the rows (baselines/genrl.py, baselines/aime_nob.py)
@@ -204,7 +203,7 @@ def baseline_configs(preset, budgets=None):
     where it has none); budgets {name: budget} replaces a preset's (GenRL's updates, AIME-NoB's env steps: --budgets)."""
     out, budgets = {}, budgets or {}
     for name, method in BASELINES.items():
-        module, cls, key = {"genrl": (genrl, genrl.GenRLConfig, "genrl"), "aime-nob": (aime_nob, aime_nob.AIMENoBConfig, "aime_nob")}[name]
+        module, cls, key = {"genrl": (genrl, GenRLConfig, "genrl"), "aime-nob": (aime_nob, AIMENoBConfig, "aime_nob")}[name]
         given = {cls.budget_field: budgets[name]} if name in budgets else {}
         cfg = cls(**{**PRESETS[key].get(preset, {}), **given})  # a preset the baseline has not (paper): its defaults
         out[method] = (module, cfg, genrl.result_config(cfg))
@@ -223,7 +222,7 @@ def run_table(run_dir, ic, oc=None, settings=SETTINGS, shard=(0, 1), methods=("f
     unknown = [m for m in methods if m not in known]
     if unknown:
         raise ValueError(f"--methods {','.join(unknown)}: choose from {', '.join(known)}")
-    oc = oc or online.OnlineConfig(**PRESETS["online"][ic.preset])
+    oc = oc or OnlineConfig(**PRESETS["online"][ic.preset])
     rundir.check_flags(ic)
     baselines = baseline_configs(ic.preset, budgets)  # their finished cells are shown whichever methods run now
     rundir.not_training(run_dir)

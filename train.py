@@ -33,19 +33,19 @@ import envs
 import evaluate
 import policy
 import rundir
-from checkpoint import COMPONENTS, TrainConfig, default_run_dir, load_run, prepare_data
-from presets import PRESETS, config_flags
+from checkpoint import default_run_dir, load_run, prepare_data
+from configs import COMPONENTS, PRESETS, TrainConfig, config_flags
 
 
 def add_config_flags(parser):
-    """One flag per field of each component's config (presets.config_flags: its help the field's comment)."""
+    """One flag per field of each component's config (configs.config_flags: its help the field's comment)."""
     for name, (cls, prefix) in COMPONENTS.items():
         config_flags(parser, cls, prefix, f"{name}.", {"preset": tuple(PRESETS["train"])} if name == "train" else getattr(cls, "choices", None),
                      bare=("obs",) if name == "wm" else ())
 
 
 def resolve_configs(args, preset):
-    """dataclass defaults (the cpu preset) < the preset's overrides (presets.py) < explicit flags -> {component: config}."""
+    """dataclass defaults (the cpu preset) < the preset's overrides (configs.py) < explicit flags -> {component: config}."""
     out = {}
     for name, (cls, _) in COMPONENTS.items():
         given = {f.name: getattr(args, f"{name}.{f.name}") for f in dataclasses.fields(cls)}

@@ -25,40 +25,10 @@ Imagination (imagine, policy.py) keeps the convention, with k counting imagined 
     value[:, k]      v_0           v_1           v_2       ...   v_H        G_k = r_{k+1} + gamma [(1 - lambda) v_{k+1} + lambda G_{k+1}], G_H = v_H
 """
 import math
-from dataclasses import dataclass
-from typing import ClassVar
 
 import torch
 import torch.nn as nn
 import torch.nn.functional as F
-
-
-@dataclass
-class WorldModelConfig:
-    # rundir.check_flags: the values a field may take where not a count (>= 1), a learning rate in (0, 1) or a float >= 0
-    ranges: ClassVar[dict] = {"overshoot": (0, None), "discrete": (0, None), "unimix": (0, 1), "grad_clip": "> 0", "min_std": "> 0"}
-    choices: ClassVar[dict] = {"obs": ("state", "pixels")}  # train.py's --obs accepts these alone
-    obs: str = "state"  # 'state': proprioception (ours, a CPU budget; deviation) or 'pixels': 64x64x3 (the paper)
-    deter: int = 200  # GRU state h_t, Dreamer V1
-    stoch: int = 30  # z_t: Gaussian units (Dreamer V1), or categorical variables when discrete > 0 (DreamerV2; GenRL: 32)
-    discrete: int = 0  # classes per categorical variable of z_t (DreamerV2; GenRL: 32); 0: a Gaussian z_t (Dreamer V1)
-    unimix: float = 0.01  # DreamerV3: the categorical's probabilities mixed with 1 % uniform (unused by a Gaussian z_t)
-    hidden: int = 256  # width of the RSSM's input and head layers (ours; Dreamer V1: 200)
-    units: int = 256  # width of the state encoder/decoder MLPs (ours; Dreamer V1's MLP size: 400)
-    layers: int = 2  # hidden layers of the state encoder/decoder MLPs (ours: a 24-36-d vector needs little)
-    cnn_depth: int = 32  # channels of the first conv layer of the pixel encoder/decoder, doubled per layer (Dreamer V1: 32, 64, 128, 256)
-    min_std: float = 0.1  # Dreamer V1: std = softplus(x) + 0.1 of a Gaussian z_t
-    free_nats: float = 1.0  # Dreamer V3: each KL term is clipped below 1 nat per step
-    kl_dyn: float = 0.5  # Dreamer V3 KL balancing: weight of KL(sg(post) || prior), trains the prior
-    kl_rep: float = 0.1  # Dreamer V3 KL balancing: weight of KL(post || sg(prior)), trains the posterior
-    # PlaNet's latent overshooting (Hafner et al. 2019; ours here, `overshooting_kl`): also KL(sg(post) || the prior rolled
-    # this many steps open loop with the recorded actions), weighed as kl_dyn; 0: Eq. 2 alone
-    overshoot: int = 0
-    overshoot_starts: int = 4  # open-loop rollouts per segment, from random steps of it (ours)
-    batch: int = 16  # sequences per batch (ours, a CPU budget; Dreamer V1: 50)
-    seq_len: int = 50  # steps per sequence, Dreamer V1
-    lr: float = 6e-4  # Adam, Dreamer V1
-    grad_clip: float = 100.0  # global gradient norm, Dreamer V1
 
 
 def symlog(x):

@@ -30,10 +30,8 @@ here in env steps) as genrl.py (its plumbing).
     python baselines/aime_nob.py --demo stickman_run --view side --run runs/<name> [--seeds 3] [--preset smoke|cpu]
 """
 import copy
-import dataclasses
 import os
 import sys
-from typing import ClassVar
 
 import numpy as np
 import torch
@@ -47,37 +45,11 @@ import ot_reward  # noqa: E402
 import policy  # noqa: E402
 import rundir  # noqa: E402
 from baselines import genrl  # noqa: E402
-from presets import PRESETS  # noqa: E402
+from configs import PRESETS, AIMENoBConfig, OTConfig, budgets  # noqa: E402
 from video_encoder import check_same_encoder, load_encoder  # noqa: E402
 from world_model import mlp  # noqa: E402
 
 METHOD = "AIME-NoB"
-
-
-@dataclasses.dataclass
-class AIMENoBConfig:
-    # rundir.check_flags: the values a field may take where not a count (>= 1), a learning rate in (0, 1) or a float >= 0
-    ranges: ClassVar[dict] = {"body_ratio": (0, 1), "reward_sum": "> 0"}
-    preset: str = "cpu"  # smoke | cpu: the overrides in presets.PRESETS["aime_nob"], and the OT solver's preset of the same name
-    env_steps: int = 5000  # interaction budget per seed in agent steps: 10 episodes (ours, cpu time; AIME-NoB interacts far longer)
-    episode_steps: int = envs.EPISODE_STEPS  # agent steps per collected episode (a whole episode)
-    updates: int = 50  # world-model and actor-critic updates after each episode (ours: a cpu seed in minutes, docs/ablations.md, Baselines' budgets)
-    starts: int = 128  # imagination start states per update, posterior states of the batch (as genrl.py)
-    body_ratio: float = 0.5  # share of D_body segments in each world-model batch (AIME-NoB: embodiment data at ratio 0.5)
-    reward_sum: float = 10.0  # the first episode's OT labels are scaled to sum to -reward_sum (ROT: auto_rew_scale_factor 10)
-    seeds: int = 3  # Sec. 5: baselines run with 3 seeds
-    eval_episodes: int = 2  # episodes in the agent's own env per seed
-    eval_steps: int = envs.EPISODE_STEPS  # agent steps per evaluation episode
-    eval_at: str = ""  # also evaluate after these env steps, comma-separated whole episodes below --env-steps (ours, as genrl.py)
-    budget_field: ClassVar[str] = "env_steps"
-
-    def __post_init__(self):
-        rundir.check_flags(self)
-        if self.env_steps % self.episode_steps:
-            raise ValueError(f"--env-steps {self.env_steps} is not a multiple of --episode-steps {self.episode_steps}: the budget is whole episodes")
-        if self.body_ratio == 1:
-            raise ValueError("--body-ratio 1: must be below 1, the rest of each batch is the new episodes, which train the reward")
-        genrl.budgets(self)  # a malformed --eval-at fails here
 
 
 def episode_rewards(p, demo_p, ot_cfg):
@@ -122,7 +94,7 @@ def mixed_batch(body, online, cfgs, ratio, rng, device):
 
 def train_seed(cell, nc, body, encoder, demo_p, seed, on_budget=None, resume=None):
     """AIME-NoB for one seed (module docstring) -> the actor, the world model trained on, and a log of the episodes.
-    on_budget(env_steps, actor, world_model, state) after each budget of genrl.budgets(nc), state() the seed's training
+    on_budget(env_steps, actor, world_model, state) after each budget of budgets(nc), state() the seed's training
     state (its episodes too); resume: such a state, to go on from its env steps."""
     torch.manual_seed(seed)
     rng = np.random.default_rng(seed)
@@ -143,14 +115,14 @@ def train_seed(cell, nc, body, encoder, demo_p, seed, on_budget=None, resume=Non
     parts = {"world_model": wm, "reward_head": reward_head, "actor": actor, "critic": critic, "slow_critic": slow_critic,
              "return_norm": return_norm, **{f"optim_{i}": opt for i, (opt, _, _) in enumerate(optims)}}
     env = envs.make_env(cfgs["train"].env, cell["task"])
-    ot_cfg = ot_reward.OTConfig(**PRESETS["ot"][nc.preset])  # the solver's settings, unit scale: the labels are scaled below
+    ot_cfg = OTConfig(**PRESETS["ot"][nc.preset])  # the solver's settings, unit scale: the labels are scaled below
     goal, episodes, log, scale, first = genrl.no_goal(1, device), [], [], None, 0
     if resume:
         done, rng = genrl.load_state(parts, resume)
         first, scale, log = done // nc.episode_steps, resume["scale"], resume["log"]
         episodes = [{k: v.numpy() for k, v in episode.items()} for episode in resume["episodes"]]
     state = lambda: {**genrl.save_state(parts, (e + 1) * nc.episode_steps, rng), "episodes": rundir.plain(episodes), "scale": scale, "log": log}
-    n_episodes, marks = nc.env_steps // nc.episode_steps, genrl.budgets(nc)
+    n_episodes, marks = nc.env_steps // nc.episode_steps, budgets(nc)
     bar = tqdm(total=n_episodes * nc.updates, initial=first * nc.updates, desc=f"{METHOD} seed {seed} updates ({n_episodes} episodes)", leave=False)
     for e in range(first, n_episodes):
         episode, task_return = collect_episode(env, wm, actor, nc.episode_steps, wc.obs, 10_000 + 1000 * seed + e)
@@ -190,7 +162,7 @@ def train_seed(cell, nc, body, encoder, demo_p, seed, on_budget=None, resume=Non
 
 
 def run_cell(run_dir, demo, view, nc, data=None):
-    """AIME-NoB on one demo folder for seeds 0..nc.seeds-1, at each budget of genrl.budgets(nc), skipping what has a row
+    """AIME-NoB on one demo folder for seeds 0..nc.seeds-1, at each budget of budgets(nc), skipping what has a row
     already -> the new rows."""
     cell = genrl.load_cell(run_dir, demo, view, data)
     inputs = {}

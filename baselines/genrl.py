@@ -43,7 +43,6 @@ import json
 import os
 import sys
 import time
-from typing import ClassVar
 
 import numpy as np
 import torch
@@ -57,31 +56,10 @@ import evaluate  # noqa: E402
 import policy  # noqa: E402
 import rundir  # noqa: E402
 import runner  # noqa: E402
-from presets import PRESETS, config_flags  # noqa: E402
+from configs import PRESETS, GenRLConfig, budgets, config_flags  # noqa: E402
 from video_encoder import check_same_encoder  # noqa: E402
 
 METHOD = "GenRL"
-
-
-@dataclasses.dataclass
-class GenRLConfig:
-    preset: str = "cpu"  # smoke | cpu: the overrides in presets.PRESETS["genrl"]
-    steps: int = 1000  # actor-critic updates per seed (ours: the time per seed and cell set for GenRL here; more updates help,
-    # docs/ablations.md, Baselines' budgets; GenRL trains far longer)
-    starts: int = 128  # imagination start states per update, D_body posterior states (ours: half the shipped agents' 256, for time)
-    target_len: int = 15  # L: target states, q(s | p) of the first demo's last L features (GenRL: as long as the imagination, H = 15 here)
-    align_window: int = 8  # k: imagined steps matched to the target's start (GenRL: n_frames 8, the video model's window)
-    seeds: int = 3  # Sec. 5: baselines run with 3 seeds
-    eval_episodes: int = 2  # episodes in the agent's own env per seed
-    eval_steps: int = envs.EPISODE_STEPS  # agent steps per evaluation episode
-    eval_at: str = ""  # also evaluate after these updates, comma-separated, each below --steps (ours: the score against budget)
-    budget_field: ClassVar[str] = "steps"  # the field a budget of eval_at counts in
-
-    def __post_init__(self):
-        rundir.check_flags(self)
-        budgets(self)  # a malformed --eval-at fails here, before anything runs
-        if self.align_window > self.target_len:
-            raise ValueError(f"--align-window {self.align_window} is longer than --target-len {self.target_len}: pass a window <= the target")
 
 
 def decoder_input(world_model, feat):
@@ -222,20 +200,6 @@ def evaluate_actor(cell, world_model, actor, episodes, steps, seed):
     for env in env_list:
         env.close()
     return [evaluate.episode_score(task, r, steps) for r in returns]
-
-
-def budgets(cfg):
-    """The budgets a seed is evaluated at, ascending: those of cfg.eval_at and the whole cfg.<budget_field>."""
-    final, flag = getattr(cfg, cfg.budget_field), "--" + cfg.budget_field.replace("_", "-")
-    try:
-        marks = sorted({int(b) for b in cfg.eval_at.split(",") if b.strip()})
-    except ValueError:
-        raise ValueError(f"--eval-at {cfg.eval_at!r}: pass budgets as comma-separated integers, e.g. 1000,2000") from None
-    bad = [b for b in marks if not 0 < b < final or b % getattr(cfg, "episode_steps", 1)]
-    if bad:
-        whole = f", whole episodes of --episode-steps {cfg.episode_steps}" if hasattr(cfg, "episode_steps") else ""
-        raise ValueError(f"--eval-at {bad[0]}: each budget must be between 0 and {flag} {final}{whole}")
-    return marks + [final]
 
 
 def result_config(cfg, budget=None):

@@ -20,6 +20,7 @@ import torch
 
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 import collect  # noqa: E402
+import configs  # noqa: E402
 import envs  # noqa: E402
 from baselines import genrl  # noqa: E402
 import ot_reward  # noqa: E402
@@ -50,7 +51,7 @@ def main():
         demo_p = torch.as_tensor(np.stack([d["p"] for d in cell["demos"]]))
         tc = cell["cfgs"]["train"]
         body = collect.load_folder(os.path.join(tc.data, tc.env), ("p", "state"))
-        ot = np.concatenate([ot_reward.ot_reward(torch.as_tensor(np.stack([e["p"] for e in body[i:i + 40]])), demo_p, ot_reward.OTConfig())[0].sum(1).numpy()
+        ot = np.concatenate([ot_reward.ot_reward(torch.as_tensor(np.stack([e["p"] for e in body[i:i + 40]])), demo_p, configs.OTConfig())[0].sum(1).numpy()
                              for i in range(0, len(body), 40)])
         stand = np.array([envs.observed_posture(tc.env, e["state"]).sum() for e in body])
         source = np.array([str(e["task"]) for e in body])

@@ -33,6 +33,7 @@ import torch
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 import checkpoint  # noqa: E402
 import collect  # noqa: E402
+import configs  # noqa: E402
 import distance  # noqa: E402
 import envs  # noqa: E402
 import evaluate  # noqa: E402
@@ -115,7 +116,7 @@ def fit_td(x, g, updates, batch, units=128, seed=0):
     with --dist-reading td, here on the frozen models' reading of D_body. Returns the distance.DistanceNet."""
     torch.manual_seed(seed)
     rng = torch.Generator().manual_seed(seed)
-    cfg = distance.DistanceConfig(units=units, input="feat", reading="td")  # input: x and g come embedded already
+    cfg = configs.DistanceConfig(units=units, input="feat", reading="td")  # input: x and g come embedded already
     d, slow = (distance.DistanceNet(cfg, x.shape[-1]) for _ in range(2))
     slow.load_state_dict(d.state_dict())
     opt = torch.optim.Adam(d.parameters(), cfg.lr)

@@ -22,12 +22,13 @@ import numpy as np
 import torch
 
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+import configs  # noqa: E402
 import envs  # noqa: E402
 import evaluate  # noqa: E402
 from baselines import genrl  # noqa: E402
 import policy  # noqa: E402
 import rundir  # noqa: E402
-from presets import PRESETS  # noqa: E402
+from configs import PRESETS  # noqa: E402
 
 
 @torch.no_grad()
@@ -60,7 +61,7 @@ def main():
     args = parser.parse_args()
     torch.manual_seed(0)
     cell = genrl.load_cell(args.run, args.demo, args.view)
-    models, cfgs, gc = cell["models"], cell["cfgs"], genrl.GenRLConfig(**PRESETS["genrl"][args.preset])
+    models, cfgs, gc = cell["models"], cell["cfgs"], configs.GenRLConfig(**PRESETS["genrl"][args.preset])
     wm = models["world_model"]
     p = torch.as_tensor(cell["demos"][0]["p"])
     target = genrl.target_states(models, p, gc.target_len)

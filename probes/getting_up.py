@@ -35,6 +35,7 @@ import torch
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 import checkpoint  # noqa: E402
 import collect  # noqa: E402
+import configs  # noqa: E402
 import envs  # noqa: E402
 import evaluate  # noqa: E402
 import fidelity  # noqa: E402
@@ -167,7 +168,7 @@ def main():
     parser.add_argument("--imagined", action="store_true", help="instead: does the world model imagine D_body's getting-up events")
     parser.add_argument("--data", help="the data folder of D_body and the demos (default: the run's)")
     args = parser.parse_args()
-    torch.set_num_threads(checkpoint.TrainConfig.threads)  # the benchmark's threads and matmul route (train.py --evaluate):
+    torch.set_num_threads(configs.TrainConfig.threads)  # the benchmark's threads and matmul route (train.py --evaluate):
     rundir.fast_matmul()  # other float sums change a stickman's episodes after a few steps
     cfgs, models, _ = checkpoint.load_run(args.run)
     cfgs["train"].data = args.data or cfgs["train"].data

@@ -37,6 +37,7 @@ from tqdm import tqdm
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 import checkpoint  # noqa: E402
 import collect  # noqa: E402
+import configs  # noqa: E402
 import envs  # noqa: E402
 import evaluate  # noqa: E402
 import online  # noqa: E402
@@ -165,7 +166,7 @@ def main():
     cfgs, models, _ = checkpoint.load_run(args.run)
     agent, data = cfgs["train"].env, cfgs["train"].data
     encoder = video_encoder.load_encoder(cfgs["train"].encoder)
-    ot_cfg = ot_reward.OTConfig()
+    ot_cfg = configs.OTConfig()
     args.out = args.out or f"docs/results/goal_probe_{agent}.jsonl"
     done = {(r["run"], r["task"], r["setting"]) for r in rundir.read_jsonl(args.out)}
     os.makedirs(os.path.dirname(args.out) or ".", exist_ok=True)

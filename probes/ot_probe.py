@@ -22,6 +22,7 @@ import torch
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 import checkpoint  # noqa: E402
 import collect  # noqa: E402
+import configs  # noqa: E402
 import envs  # noqa: E402
 import evaluate  # noqa: E402
 import ot_reward  # noqa: E402
@@ -43,7 +44,7 @@ def imagined_ot(models, cfgs, goals, demo_p, starts, seed=0):
         for goal in goals:
             torch.manual_seed(seed)  # the same imagination noise for every goal
             feat, _, _ = policy.rollout(models["world_model"], models["actor"], start, goal.expand(starts, -1), ac.horizon)
-            reward, _ = ot_reward.ot_reward(vae.decode(feat[:, 1:]), demo_p, ot_reward.OTConfig(), t0 + 1)
+            reward, _ = ot_reward.ot_reward(vae.decode(feat[:, 1:]), demo_p, configs.OTConfig(), t0 + 1)
             out.append(reward.mean().item())
     return np.array(out)
 

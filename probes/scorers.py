@@ -25,11 +25,11 @@ from tqdm import tqdm
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 import checkpoint  # noqa: E402
 import collect  # noqa: E402
+import configs  # noqa: E402
 import envs  # noqa: E402
 import evaluate  # noqa: E402
 import fidelity  # noqa: E402
 import online  # noqa: E402
-import ot_reward  # noqa: E402
 import rundir  # noqa: E402
 from evaluate import spearman  # noqa: E402
 from video_encoder import load_encoder  # noqa: E402
@@ -48,7 +48,7 @@ def tail(x):
 
 
 def ot(agent_p, demo_p):
-    return online.ot_score(agent_p, demo_p, ot_reward.OTConfig())
+    return online.ot_score(agent_p, demo_p, configs.OTConfig())
 
 
 SCORERS = {  # name: (agent_p (N, T, D), demo_p (K, M, D)) -> (N,), higher is a better match

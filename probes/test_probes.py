@@ -12,13 +12,12 @@ import torch
 
 import checkpoint
 import evaluate
-import ot_reward
-import presets
+import configs
 import video_encoder
 from baselines import aime_nob, genrl
 from conftest import probe_script
 
-GENRL_SMOKE = genrl.GenRLConfig(**presets.PRESETS["genrl"]["smoke"])
+GENRL_SMOKE = configs.GenRLConfig(**configs.PRESETS["genrl"]["smoke"])
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
 
@@ -31,7 +30,7 @@ def _copy(smoke_run, tmp_path, name):
 def test_aime_reward_ranks_each_seeds_episodes(smoke_run, tmp_path):
     """probes/aime_reward.py reads each AIME-NoB seed's log: Spearman of its episodes' OT sums against their task returns."""
     run = _copy(smoke_run, tmp_path, "run")
-    aime_nob.run_cell(run, "stickman_stand", "side", aime_nob.AIMENoBConfig(**presets.PRESETS["aime_nob"]["smoke"]))
+    aime_nob.run_cell(run, "stickman_stand", "side", configs.AIMENoBConfig(**configs.PRESETS["aime_nob"]["smoke"]))
     probe = [sys.executable, "probes/aime_reward.py", run]
     out = subprocess.run(probe + ["stickman_stand", "side", "--body"], cwd=ROOT, capture_output=True, text=True)
     assert out.returncode == 0, out.stderr[-2000:]
@@ -141,7 +140,7 @@ def test_ensemble_probe_acts_with_the_mean_of_its_clones_actions():
 
     ensemble = probe_script("ensemble_probe")
     torch.manual_seed(0)
-    cfg = policy.ActorCriticConfig(**presets.PRESETS["ac"]["smoke"])
+    cfg = configs.ActorCriticConfig(**configs.PRESETS["ac"]["smoke"])
     actors = [policy.Actor(cfg, 5, 5, 3) for _ in range(3)]
     feat, goal = torch.randn(4, 5), torch.randn(4, 5)
     with torch.no_grad():
@@ -241,7 +240,7 @@ def test_goal_probe_scores_every_goal_by_every_objective(smoke_run):
     demo_p = np.random.default_rng(0).standard_normal((3, 40, models["goal_vae"].feat_dim)).astype(np.float32)
     demo_p /= np.linalg.norm(demo_p, axis=-1, keepdims=True)
     scores, true, error = goal_probe.probe_cell(models, cfgs, video_encoder.load_encoder("default"), "run", demo_p, [7],
-                                                ot_reward.OTConfig(iters=5), steps=12, n_starts=4)
+                                                configs.OTConfig(iters=5), steps=12, n_starts=4)
     assert set(scores) == set(goal_probe.OBJECTIVES) and all(v.shape == (3,) and np.isfinite(v).all() for v in scores.values())
     assert true.shape == (3,) and error.shape == (len(goal_probe.ERROR_STEPS),)
 

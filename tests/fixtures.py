@@ -7,9 +7,8 @@ import pytest
 import torch
 import torch.nn.functional as F
 
-import checkpoint
 import collect
-import presets
+import configs
 import train
 from baselines import genrl
 
@@ -18,7 +17,7 @@ from baselines import genrl
 def smoke_data(tmp_path_factory):
     """D_body of the walker and D_demo, smoke preset (a few 20-step episodes), in a temporary data folder."""
     root = str(tmp_path_factory.mktemp("data"))
-    cfg = collect.CollectConfig(**presets.PRESETS["collect"]["smoke"])
+    cfg = configs.CollectConfig(**configs.PRESETS["collect"]["smoke"])
     collect.collect_body("walker", cfg, root, workers=2)
     collect.collect_demos(cfg, root, workers=2)
     return root
@@ -36,7 +35,7 @@ def smoke_run(smoke_data, tmp_path_factory):
 def train_args(**given):
     """An argparse-like namespace for train.resolve_configs: 'component.field' -> value (None = not given)."""
     ns = argparse.Namespace()
-    for name, (cls, _) in checkpoint.COMPONENTS.items():
+    for name, (cls, _) in configs.COMPONENTS.items():
         for field in dataclasses.fields(cls):
             setattr(ns, f"{name}.{field.name}", given.pop(field.name if name == "train" else f"{name}.{field.name}", None))
     assert not given, f"no such config field: {sorted(given)}"  # a typo would test the default

@@ -13,19 +13,18 @@ import torch
 import torch.nn.functional as F
 
 import checkpoint
-import ot_reward
-import presets
+import configs
 from baselines import aime_nob, genrl
 from tests.fixtures import kill_at_evaluation
 
-SMOKE = aime_nob.AIMENoBConfig(**presets.PRESETS["aime_nob"]["smoke"])
+SMOKE = configs.AIMENoBConfig(**configs.PRESETS["aime_nob"]["smoke"])
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
 
 def test_copy_of_a_demo_earns_the_most_and_is_matched_to_it():
     torch.manual_seed(0)
     demo_p = F.normalize(torch.randn(3, 12, 16, dtype=torch.float64), dim=-1)  # 3 demos of 12 frames
-    cfg = ot_reward.OTConfig()
+    cfg = configs.OTConfig()
     copy, best = aime_nob.episode_rewards(demo_p[1].numpy(), demo_p, cfg)
     assert best == 1 and copy.shape == (12,) and copy.dtype == np.float32
     assert -1e-3 < copy.sum() <= 0  # each frame transported onto itself: cost ~0
@@ -38,9 +37,9 @@ def test_copy_of_a_demo_earns_the_most_and_is_matched_to_it():
 
 def test_bad_budgets_name_the_flag():
     with pytest.raises(ValueError, match=r"--env-steps 1200 is not a multiple of --episode-steps 500"):
-        aime_nob.AIMENoBConfig(env_steps=1200)
+        configs.AIMENoBConfig(env_steps=1200)
     with pytest.raises(ValueError, match=r"--body-ratio 1: must be below 1"):
-        aime_nob.AIMENoBConfig(body_ratio=1.0)
+        configs.AIMENoBConfig(body_ratio=1.0)
 
 
 def test_one_seed_interacts_for_its_budget_and_the_world_model_learns(smoke_run):

@@ -6,7 +6,7 @@ from torch.distributions import Normal, TanhTransform, TransformedDistribution
 
 import cloning as C
 import policy as P
-import presets
+import configs
 
 torch.set_num_threads(1)
 
@@ -14,7 +14,7 @@ torch.set_num_threads(1)
 def test_bc_loss_is_tanh_gaussian_nll_of_dataset_actions():
     """bc_loss = -log pi(a_t | s_t, g) of the recorded a_t = action[:, t + 1], checked against torch.distributions."""
     torch.manual_seed(0)
-    cfg = P.ActorCriticConfig(**presets.PRESETS["ac"]["smoke"])
+    cfg = configs.ActorCriticConfig(**configs.PRESETS["ac"]["smoke"])
     actor = P.Actor(cfg, 6, 6, 3)
     B, T = 5, 2  # T = 2: only t = 0, whose goal is frame 1 and action action[:, 1]
     feat, goal, action = torch.randn(B, T, 6), torch.randn(B, T, 6), torch.rand(B, T, 3) * 1.6 - 0.8
@@ -66,7 +66,7 @@ def test_advantage_weighted_clone_picks_the_good_action_where_plain_cloning_aver
     means = {}
     for beta in (0.0, 10.0):
         torch.manual_seed(0)
-        actor = P.Actor(P.ActorCriticConfig(**presets.PRESETS["ac"]["smoke"]), 2, 2, 1)
+        actor = P.Actor(configs.ActorCriticConfig(**configs.PRESETS["ac"]["smoke"]), 2, 2, 1)
         opt = torch.optim.Adam(actor.parameters(), lr=3e-3)
         for _ in range(300):
             loss, _ = C.bc_loss(actor, feat, goal, action, final_goal, 1.0, value, beta)
@@ -82,7 +82,7 @@ def test_advantage_weighted_clone_picks_the_good_action_where_plain_cloning_aver
 def test_td_phi_is_the_distance_in_steps():
     """DistanceNet.phi: d(s, g) = (1 - gamma) ||phi(s) - phi(g)||, the value the clone's advantage reads."""
     import distance as D
-    cfg = D.DistanceConfig(units=16, layers=2, input="feat", reading="td")
+    cfg = configs.DistanceConfig(units=16, layers=2, input="feat", reading="td")
     net = D.DistanceNet(cfg, 6)
     s, g = torch.randn(4, 3, 6), torch.randn(4, 3, 6)
     assert torch.allclose(net(s, g), (1 - cfg.gamma) * (net.phi(s) - net.phi(g)).norm(dim=-1), atol=1e-6)

@@ -8,9 +8,9 @@ import torch
 import collect
 import envs
 import experts
-import presets
+import configs
 
-SMOKE = collect.CollectConfig(**presets.PRESETS["collect"]["smoke"])
+SMOKE = configs.CollectConfig(**configs.PRESETS["collect"]["smoke"])
 
 
 @pytest.fixture(scope="module")
@@ -80,7 +80,7 @@ def test_an_episode_in_a_reused_env_is_that_of_a_fresh_one():
 
 
 def test_demo_return_is_sum_of_rewards_and_views_share_motion(tmp_path):
-    cfg = collect.CollectConfig(**dict(presets.PRESETS["collect"]["smoke"], demo_episodes=1))
+    cfg = configs.CollectConfig(**dict(configs.PRESETS["collect"]["smoke"], demo_episodes=1))
     collect.collect_demos(cfg, str(tmp_path), workers=2)
     folders = sorted(os.listdir(tmp_path / "demos"))
     assert len(folders) == 2 * 4 * 2  # body x task x view
@@ -124,7 +124,7 @@ def test_missing_expert_names_the_command(tmp_path, monkeypatch):
 
 def test_collection_never_replaces_a_written_view(data, tmp_path):
     """A demo whose side view is on disk and diagonal view is not: only the diagonal file is written."""
-    cfg = collect.CollectConfig(**dict(presets.PRESETS["collect"]["smoke"], demo_episodes=1))
+    cfg = configs.CollectConfig(**dict(configs.PRESETS["collect"]["smoke"], demo_episodes=1))
     side = tmp_path / "demos" / "walker_run_side" / "00.npz"
     side.parent.mkdir(parents=True)
     episode = dict(np.load(os.path.join(data, "walker", "run_0000.npz")))  # any 20-step episode stands in for it
@@ -162,14 +162,14 @@ def test_task_episodes_flag_grows_d_body_and_keeps_what_exists(data, tmp_path):
 
 
 def test_task_episodes_replay_the_chosen_part_of_each_learning_history(tmp_path):
-    cfg = collect.CollectConfig(explore_episodes=0, task_episodes=40, history_from=0.5)
+    cfg = configs.CollectConfig(explore_episodes=0, task_episodes=40, history_from=0.5)
     steps = {task: experts.history_steps("stickman", task) for task in envs.BODY_TASKS}
     chosen = {}
     for _, job in collect.episode_jobs("stickman", cfg, str(tmp_path)):
         chosen.setdefault(job["task"], set()).add(job["snapshot"])
     for task, history in steps.items():  # e.g. stand 50k..300k: only 150k..300k, each of them drawn
         assert chosen[task] == {s for s in history if s >= history[-1] / 2}
-    whole = collect.episode_jobs("stickman", collect.CollectConfig(explore_episodes=0, task_episodes=40), str(tmp_path))  # the default
+    whole = collect.episode_jobs("stickman", configs.CollectConfig(explore_episodes=0, task_episodes=40), str(tmp_path))  # the default
     assert {job["snapshot"] for _, job in whole if job["task"] == "stand"} == set(steps["stand"])
 
 
@@ -177,7 +177,7 @@ def test_the_cpu_preset_collects_160_task_episodes_per_task_for_both_bodies(tmp_
     """The cpu preset's D_body: 80 exploration episodes and 160 per task in BODY_TASKS (560), each with its own seed;
     D_demo's config is the same preset's."""
     cpu = collect.preset_config("cpu")
-    assert cpu == collect.CollectConfig() and cpu.demo_episodes == 10
+    assert cpu == configs.CollectConfig() and cpu.demo_episodes == 10
     for body in ("walker", "stickman"):
         jobs = [job for _, job in collect.episode_jobs(body, cpu, str(tmp_path))]
         assert len(jobs) == 560 and [j["kind"] for j in jobs].count("explore") == 80

@@ -2,7 +2,9 @@
 import pytest
 import torch
 
-from distance import DistanceConfig, DistanceNet, distance_loss, sample_pairs, td_loss
+import configs
+from configs import DistanceConfig
+from distance import DistanceNet, distance_loss, sample_pairs, td_loss
 
 torch.set_num_threads(1)
 
@@ -142,10 +144,9 @@ def test_encoder_goals_a_few_steps_ahead_score_better_than_another_trajectory_s(
 
 
 def test_obs_input_reads_the_decoded_observation_and_leaves_the_decoder_to_the_world_model():
-    import presets
     import world_model as W
 
-    wm = W.WorldModel(W.WorldModelConfig(**presets.PRESETS["wm"]["smoke"]), 5, 2)
+    wm = W.WorldModel(configs.WorldModelConfig(**configs.PRESETS["wm"]["smoke"]), 5, 2)
     dist_net = DistanceNet(DistanceConfig(units=8, layers=1, input="obs"), wm.feat_dim, wm.decoder)
     assert not any(n.startswith("embed") for n, _ in dist_net.named_parameters()) and len(list(dist_net.parameters())) == 4
     feat_i, feat_j = torch.randn(3, wm.feat_dim), torch.randn(3, wm.feat_dim)

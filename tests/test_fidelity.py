@@ -6,7 +6,7 @@ import torch
 
 import fidelity
 import goal_vae
-import presets
+import configs
 import world_model as W
 from tests.fixtures import train_args
 
@@ -18,8 +18,8 @@ def exact_toy(E=3, L=40, obs_dim=5, action_dim=2, p_dim=8, discrete=0):
     episodes it generates itself: o_t and p_t decoded from its own prior-mean states. Filtering and imagination then
     follow the same states, so the model is exact on its episodes."""
     torch.manual_seed(0)
-    wm = W.WorldModel(W.WorldModelConfig(**presets.PRESETS["wm"]["smoke"]), obs_dim, action_dim)
-    vae = goal_vae.GoalVAE(goal_vae.GoalVAEConfig(**presets.PRESETS["goal"]["smoke"]), p_dim, wm.cfg.deter, wm.latent)
+    wm = W.WorldModel(configs.WorldModelConfig(**configs.PRESETS["wm"]["smoke"]), obs_dim, action_dim)
+    vae = goal_vae.GoalVAE(configs.GoalVAEConfig(**configs.PRESETS["goal"]["smoke"]), p_dim, wm.cfg.deter, wm.latent)
     with torch.no_grad():
         first, last = wm.prior_net[0], wm.prior_net[-1]
         wm.post_in.weight.zero_()

@@ -11,11 +11,11 @@ import pytest
 import torch
 
 import checkpoint
-import presets
+import configs
 from baselines import genrl
 from tests.fixtures import kill_at_evaluation
 
-SMOKE = genrl.GenRLConfig(**presets.PRESETS["genrl"]["smoke"])
+SMOKE = configs.GenRLConfig(**configs.PRESETS["genrl"]["smoke"])
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
 
@@ -63,11 +63,11 @@ def test_reward_is_differentiable_in_the_imagined_states():
 
 def test_bad_windows_name_the_flag():
     with pytest.raises(ValueError, match=r"--align-window 20 is longer than --target-len 15"):
-        genrl.GenRLConfig(align_window=20)
+        configs.GenRLConfig(align_window=20)
     with pytest.raises(ValueError, match=r"--align-window 8 is longer than the run's imagination horizon 5"):
         genrl.aligned_reward(torch.randn(1, 5, 3), torch.randn(10, 3), 8)
     with pytest.raises(ValueError, match=r"--seeds 0: must be >= 1"):
-        genrl.GenRLConfig(seeds=0)
+        configs.GenRLConfig(seeds=0)
 
 
 def test_world_model_stays_frozen_and_the_actor_learns(smoke_run):
@@ -167,10 +167,10 @@ def test_a_seed_killed_after_a_budget_goes_on_from_it(smoke_run, tmp_path, monke
 
 def test_bad_budgets_name_the_flag_and_the_fix():
     with pytest.raises(ValueError, match=r"--eval-at 1000: each budget must be between 0 and --steps 1000"):
-        genrl.GenRLConfig(eval_at="500,1000")
+        configs.GenRLConfig(eval_at="500,1000")
     with pytest.raises(ValueError, match=r"--eval-at 'a,b': pass budgets as comma-separated integers, e.g. 1000,2000"):
-        genrl.GenRLConfig(eval_at="a,b")
-    assert genrl.budgets(genrl.GenRLConfig(steps=4000, eval_at="2000, 1000")) == [1000, 2000, 4000]
+        configs.GenRLConfig(eval_at="a,b")
+    assert configs.budgets(configs.GenRLConfig(steps=4000, eval_at="2000, 1000")) == [1000, 2000, 4000]
 
 
 def test_settings_run_each_of_their_cells_once(smoke_run, tmp_path):

@@ -6,19 +6,20 @@ import torch.nn.functional as F
 from torch.distributions import Independent, Normal, OneHotCategorical, kl_divergence
 
 import fidelity
-import presets
+import configs
 import world_model as W
 from tests.fixtures import random_batch
-from goal_vae import GoalVAE, GoalVAEConfig
+from configs import GoalVAEConfig
+from goal_vae import GoalVAE
 
 torch.set_num_threads(1)
 D = 8
 
 
 def models(discrete=0):
-    cfg = W.WorldModelConfig(**presets.PRESETS["wm"]["smoke"], discrete=discrete)
+    cfg = configs.WorldModelConfig(**configs.PRESETS["wm"]["smoke"], discrete=discrete)
     world_model = W.WorldModel(cfg, 5, 2)
-    vae = GoalVAE(GoalVAEConfig(**presets.PRESETS["goal"]["smoke"]), D, cfg.deter, world_model.latent)
+    vae = GoalVAE(GoalVAEConfig(**configs.PRESETS["goal"]["smoke"]), D, cfg.deter, world_model.latent)
     return world_model, vae
 
 

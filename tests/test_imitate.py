@@ -10,11 +10,10 @@ import torch
 
 import checkpoint
 import goal_inference
-import ot_reward
-import presets
+import configs
 import runner
 
-SMOKE = goal_inference.ImitateConfig(**presets.PRESETS["imitate"]["smoke"])
+SMOKE = configs.ImitateConfig(**configs.PRESETS["imitate"]["smoke"])
 
 
 def test_zero_shot_and_finetune_end_to_end(smoke_run):
@@ -51,7 +50,7 @@ def test_goal_gets_L_GI_and_psi_nothing(smoke_run):
     goal = torch.nn.Parameter(torch.randn(feat_dim))
     demo_p = torch.nn.functional.normalize(torch.randn(2, 12, models["goal_vae"].feat_dim), dim=-1)
     gi, ot_loss, _ = goal_inference.goal_inference_loss(models, critic_ot, slow_ot, goal, posterior_starts(models, cfgs), demo_p, cfgs,
-                                                 ot_reward.OTConfig(iters=5))
+                                                 configs.OTConfig(iters=5))
     gi.backward()
     assert goal.grad is not None and goal.grad.abs().sum() > 0
     assert all(p.grad is None for name in ("actor", "critic", "world_model", "goal_vae") for p in models[name].parameters())
@@ -172,7 +171,7 @@ def test_goal_gradient_flows_through_v_ot_only(smoke_run):
                 p.data.zero_()  # V_ot(s) = 0 everywhere
         goal = torch.nn.Parameter(torch.randn(feat_dim))
         torch.manual_seed(0)
-        gi = goal_inference.goal_inference_loss(models, critic_ot, slow_ot, goal, start, demo_p, cfgs, ot_reward.OTConfig(iters=5))[0]
+        gi = goal_inference.goal_inference_loss(models, critic_ot, slow_ot, goal, start, demo_p, cfgs, configs.OTConfig(iters=5))[0]
         gi.backward()
         grads.append(goal.grad.abs().sum().item())
     assert grads[0] == 0 and grads[1] > 0
@@ -207,7 +206,7 @@ def test_parallel_shards_collect_demos_one_at_a_time(tmp_path, monkeypatch):
         active.pop()
 
     monkeypatch.setattr(collect, "collect_demos", slow_collect)
-    cfgs = {"train": checkpoint.TrainConfig(data=str(tmp_path))}
+    cfgs = {"train": configs.TrainConfig(data=str(tmp_path))}
     os.makedirs(tmp_path / "demos")  # a data folder of ours (checkpoint.demo_folder follows no other)
     shards = [threading.Thread(target=checkpoint.demo_folder, args=(cfgs, "walker_run", "side")) for _ in range(2)]
     for shard in shards:

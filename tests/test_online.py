@@ -12,19 +12,19 @@ import envs
 import fidelity
 import goal_inference
 import online
-import presets
+import configs
 import rundir
 import runner
 import tables
 import video_encoder
 
-SMOKE = goal_inference.ImitateConfig(**presets.PRESETS["imitate"]["smoke"])
+SMOKE = configs.ImitateConfig(**configs.PRESETS["imitate"]["smoke"])
 
 
 def test_successive_halving_finds_the_best_candidate_under_noise():
     """Ten candidates whose OT scores are their true means plus noise: the schedule (50 episodes) keeps the best."""
     truth = np.array([-0.9, -0.5, -0.8, -0.3, -0.7, -0.6, -0.2, -0.85, -0.4, -0.75])
-    cfg = online.OnlineConfig()
+    cfg = configs.OnlineConfig()
     for seed in range(5):
         rng = np.random.default_rng(seed)
         chosen, log = online.successive_halving(lambda idx, env_seed: truth[idx] + 0.05 * rng.standard_normal(len(idx)), 10, cfg, seed)
@@ -35,7 +35,7 @@ def test_successive_halving_finds_the_best_candidate_under_noise():
 
 def test_candidates_of_a_round_share_their_start_state():
     seen = []
-    online.successive_halving(lambda idx, env_seed: seen.append((tuple(idx), env_seed)) or -np.asarray(idx, float), 10, online.OnlineConfig(), 0)
+    online.successive_halving(lambda idx, env_seed: seen.append((tuple(idx), env_seed)) or -np.asarray(idx, float), 10, configs.OnlineConfig(), 0)
     assert seen[:2] == [(tuple(range(10)), 50_000), (tuple(range(10)), 50_001)]
     assert seen[2:5] == [((0, 1, 2, 3), 50_002 + i) for i in range(3)]  # the 4 best (scores -index) of round 1, from the next starts
     assert [s for _, s in seen[5:]] == list(range(50_005, 50_014)) and all(idx == (0, 1) for idx, _ in seen[5:])
@@ -60,8 +60,8 @@ def test_refinement_never_reads_the_task_reward(smoke_run):
     goals = models["goal_vae"].goal(torch.randn(3, models["goal_vae"].feat_dim)).detach()
     demo_p = np.random.default_rng(0).standard_normal((2, 11, models["goal_vae"].feat_dim)).astype(np.float32)
     encoder = video_encoder.load_encoder("default")
-    cfg = online.OnlineConfig(schedule=((3, 1), (2, 1)))
-    ot_cfg = goal_inference.ot_reward.OTConfig(iters=5)
+    cfg = configs.OnlineConfig(schedule=((3, 1), (2, 1)))
+    ot_cfg = goal_inference.configs.OTConfig(iters=5)
     rng = np.random.default_rng(0)
     plain = online.refine_goal(models, cfgs, lambda: envs.make_env("walker", "run"), goals, demo_p, cfg, 0, encoder, 10, ot_cfg)
     poisoned = online.refine_goal(models, cfgs, lambda: NoRewardEnv(envs.make_env("walker", "run"), rng), goals, demo_p, cfg, 0, encoder, 10, ot_cfg)
@@ -70,7 +70,7 @@ def test_refinement_never_reads_the_task_reward(smoke_run):
 
 
 def test_online_end_to_end_pairs_with_its_zero_shot_start(smoke_run):
-    oc = online.OnlineConfig(**presets.PRESETS["online"]["smoke"])
+    oc = configs.OnlineConfig(**configs.PRESETS["online"]["smoke"])
     rows = runner.imitate(smoke_run, "stickman_walk", "side", SMOKE, ["GIIL-online"], oc, zero_shot=False)
     on = [r for r in rows if r["method"] == "GIIL-online"]
     zs0 = [r for r in rows if r["method"] == "GIIL-ZS (demo 0)"]
@@ -97,7 +97,7 @@ def test_posterior_goals_start_at_the_zero_shot_goal(smoke_run):
 def test_online_with_its_zero_shot_column_writes_the_curve(smoke_run):
     """imitate.py --online's cell: GIIL-ZS of every demo, then GIIL-online, and the curve of the goal it would choose
     after each real episode, a PNG beside the cell's videos."""
-    oc = online.OnlineConfig(**presets.PRESETS["online"]["smoke"])
+    oc = configs.OnlineConfig(**configs.PRESETS["online"]["smoke"])
     runner.imitate(smoke_run, "walker_stand", "side", SMOKE, ["GIIL-online"], oc)
     path = os.path.join(checkpoint.work_folder(smoke_run), "imitate", "walker_stand_side_online_curve.png")
     assert os.path.getsize(path) > 1000 and open(path, "rb").read(8) == b"\x89PNG\r\n\x1a\n"
@@ -105,7 +105,7 @@ def test_online_with_its_zero_shot_column_writes_the_curve(smoke_run):
 
 def test_finetune_and_online_share_their_zero_shot_start(smoke_run):
     """One command with both: GIIL-ZS (demo 0) once per seed, not once per method."""
-    oc = online.OnlineConfig(**presets.PRESETS["online"]["smoke"])
+    oc = configs.OnlineConfig(**configs.PRESETS["online"]["smoke"])
     rows = runner.imitate(smoke_run, "walker_jump", "diagonal", SMOKE, ["GIIL-FT", "GIIL-online"], oc, zero_shot=False)
     zs0 = [r["seed"] for r in rows if r["method"] == "GIIL-ZS (demo 0)"]
     assert sorted(zs0) == list(range(max(SMOKE.seeds, oc.seeds)))
@@ -127,13 +127,13 @@ def test_the_goal_choosing_episodes_never_start_where_the_evaluation_does(smoke_
 
     import pytest
 
-    cpu = goal_inference.ImitateConfig()
-    runner.check_online_seeds(cpu, online.OnlineConfig())
+    cpu = configs.ImitateConfig()
+    runner.check_online_seeds(cpu, configs.OnlineConfig())
     with pytest.raises(ValueError, match=r"--online-seed-base 20000: GIIL-online's episodes would start where the evaluation's do "
                                          r"\(environment seeds 20000 to 20902\): pass 20903 or more \(default 50000\)"):
-        runner.check_online_seeds(cpu, online.OnlineConfig(seed_base=20_000))
-    runner.check_online_seeds(cpu, online.OnlineConfig(seed_base=20_903))
-    runner.check_online_seeds(cpu, online.OnlineConfig(seed_base=16_000))  # its 3 seeds' episodes end below 20000
-    oc = dataclasses.replace(online.OnlineConfig(**presets.PRESETS["online"]["smoke"]), seed_base=19_500)
+        runner.check_online_seeds(cpu, configs.OnlineConfig(seed_base=20_000))
+    runner.check_online_seeds(cpu, configs.OnlineConfig(seed_base=20_903))
+    runner.check_online_seeds(cpu, configs.OnlineConfig(seed_base=16_000))  # its 3 seeds' episodes end below 20000
+    oc = dataclasses.replace(configs.OnlineConfig(**configs.PRESETS["online"]["smoke"]), seed_base=19_500)
     with pytest.raises(ValueError, match="--online-seed-base 19500"):
         runner.imitate(smoke_run, "walker_walk", "side", SMOKE, ["GIIL-online"], oc)

@@ -9,7 +9,8 @@ import torch.nn.functional as F
 
 import bench
 import ot_reward
-from ot_reward import OTConfig, cosine_cost, sinkhorn
+from configs import OTConfig
+from ot_reward import cosine_cost, sinkhorn
 
 torch.set_num_threads(1)
 

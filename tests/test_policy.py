@@ -6,10 +6,11 @@ import torch
 from torch.distributions import Normal, TanhTransform, TransformedDistribution
 
 import policy as P
-import presets
+import configs
 import world_model as W
 from tests.fixtures import random_batch
-from distance import DistanceConfig, DistanceNet
+from configs import DistanceConfig
+from distance import DistanceNet
 
 torch.set_num_threads(1)
 
@@ -37,7 +38,7 @@ def test_lambda_return_matches_the_plain_definition():
 
 def test_tanh_gaussian_log_prob_matches_torch_distributions():
     torch.manual_seed(0)
-    cfg = P.ActorCriticConfig(**presets.PRESETS["ac"]["smoke"])
+    cfg = configs.ActorCriticConfig(**configs.PRESETS["ac"]["smoke"])
     actor = P.Actor(cfg, 6, 3, 2).double()
     feat, goal = torch.randn(50, 6, dtype=torch.float64), torch.randn(50, 3, dtype=torch.float64)
     action, log_prob = actor(feat, goal)
@@ -48,10 +49,10 @@ def test_tanh_gaussian_log_prob_matches_torch_distributions():
 
 
 def make_agents(goal_dim=None):
-    cfg = P.ActorCriticConfig(**presets.PRESETS["ac"]["smoke"])
-    world_model = W.WorldModel(W.WorldModelConfig(**presets.PRESETS["wm"]["smoke"]), 5, 2)
+    cfg = configs.ActorCriticConfig(**configs.PRESETS["ac"]["smoke"])
+    world_model = W.WorldModel(configs.WorldModelConfig(**configs.PRESETS["wm"]["smoke"]), 5, 2)
     F = world_model.feat_dim
-    dist_net = DistanceNet(DistanceConfig(**presets.PRESETS["dist"]["smoke"], input="feat"), F)
+    dist_net = DistanceNet(DistanceConfig(**configs.PRESETS["dist"]["smoke"], input="feat"), F)
     actor = P.Actor(cfg, F, F, 2)
     critic, slow_critic = P.make_critics(cfg, F, F if goal_dim is None else goal_dim)
     return cfg, world_model, dist_net, actor, critic, slow_critic
@@ -144,7 +145,7 @@ def test_sample_starts_are_distinct_detached_posterior_states():
 
 def test_actor_with_its_goal_input_computed_once_equals_the_concatenated_layer():
     torch.manual_seed(0)
-    cfg = P.ActorCriticConfig(**presets.PRESETS["ac"]["smoke"])
+    cfg = configs.ActorCriticConfig(**configs.PRESETS["ac"]["smoke"])
     actor = P.Actor(cfg, 6, 4, 3)
     feat, goal = torch.randn(7, 6), torch.randn(7, 4)
     mean, std = actor.distribution(feat, goal)
@@ -160,7 +161,7 @@ def test_actor_with_its_goal_input_computed_once_equals_the_concatenated_layer()
 def test_act_is_the_tanh_of_the_mean_and_draws_no_random_numbers():
     """How pi acts in the real environment: forward's deterministic action, the RNG untouched."""
     torch.manual_seed(0)
-    actor = P.Actor(P.ActorCriticConfig(**presets.PRESETS["ac"]["smoke"]), 6, 4, 3)
+    actor = P.Actor(configs.ActorCriticConfig(**configs.PRESETS["ac"]["smoke"]), 6, 4, 3)
     feat, goal = torch.randn(50, 6), torch.randn(50, 4)
     with torch.no_grad():
         state = torch.get_rng_state()
@@ -235,7 +236,7 @@ def test_eq4_updates_on_a_toy_world_raise_the_goal_reward_beyond_what_ignoring_t
     """Starts at the origin, goals on the unit circle, d = distance to the goal. A policy that ignores g can do no
     better than staying put (reward -1 at every step); a few hundred Eq. 4 updates must reach the goals."""
     torch.manual_seed(0)
-    cfg = P.ActorCriticConfig(units=64, actor_layers=2, critic_layers=2, horizon=8, actor_lr=1e-3, critic_lr=1e-3)
+    cfg = configs.ActorCriticConfig(units=64, actor_layers=2, critic_layers=2, horizon=8, actor_lr=1e-3, critic_lr=1e-3)
     world = ToyWorld()
     dist_net = lambda feat, goal: (feat - goal).norm(dim=-1)  # a stub with no parameters
     dist_module = torch.nn.Module()
@@ -268,7 +269,7 @@ def test_eq4_updates_on_a_toy_world_raise_the_goal_reward_beyond_what_ignoring_t
 
 def test_critic_with_the_goal_share_computed_once_equals_the_mlp_on_feat_and_goal():
     torch.manual_seed(0)
-    cfg = P.ActorCriticConfig(**presets.PRESETS["ac"]["smoke"])
+    cfg = configs.ActorCriticConfig(**configs.PRESETS["ac"]["smoke"])
     critic = P.Critic(cfg, 6, 4)
     feat, goal = torch.randn(5, 3, 6), torch.randn(5, 4)  # (N, H + 1, F), (N, G)
     expected = critic.net(torch.cat([feat, goal[:, None].expand(-1, 3, -1)], -1)).squeeze(-1)

@@ -22,7 +22,7 @@ import experts
 import goal_vae
 import goal_inference
 import imitate
-import presets
+import configs
 import rundir
 import runner
 import tables
@@ -31,7 +31,7 @@ from tests.fixtures import train_args
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 TINY = dict(steps=12, seed_steps=4, batch=8, hidden=8, snapshot_every=6, eval_every=10_000, checkpoint_minutes=0.0, final_episodes=1)
-SMOKE_IMITATE = goal_inference.ImitateConfig(**presets.PRESETS["imitate"]["smoke"])
+SMOKE_IMITATE = configs.ImitateConfig(**configs.PRESETS["imitate"]["smoke"])
 # train.py run as a script that SIGKILLs itself while writing its second checkpoint (update 6 of the smoke preset),
 # leaving a half-written temporary file, metrics rows past its checkpoint and its lock behind
 KILLED_TRAIN = """
@@ -209,11 +209,11 @@ def test_collection_into_another_presets_folder_is_refused(smoke_data, tmp_path)
     data = str(tmp_path / "data")
     shutil.copytree(os.path.join(smoke_data, "walker"), os.path.join(data, "walker"))
     before = snapshot(data)
-    longer = collect.CollectConfig(**dict(presets.PRESETS["collect"]["smoke"], explore_episodes=3, episode_steps=30))
+    longer = configs.CollectConfig(**dict(configs.PRESETS["collect"]["smoke"], explore_episodes=3, episode_steps=30))
     with pytest.raises(ValueError, match=r"explore_0000.npz is not a 30-step episode .*pass another --data"):
         collect.collect_body("walker", longer, data, workers=1)
     assert snapshot(data) == before
-    assert train.resolve_configs(train_args(), "smoke")["train"].data == presets.DATA["smoke"] != presets.DATA["cpu"]  # apart by default
+    assert train.resolve_configs(train_args(), "smoke")["train"].data == configs.DATA["smoke"] != configs.DATA["cpu"]  # apart by default
 
 
 def test_two_processes_writing_one_file_each_write_a_whole_one(tmp_path):
@@ -289,7 +289,7 @@ def test_train_flags_out_of_range(given, message, smoke_data, tmp_path):
 ])
 def test_imitate_flags_out_of_range(given, message, smoke_run, tmp_path):
     run = copy_run(smoke_run, tmp_path)
-    ic = goal_inference.ImitateConfig(**{**presets.PRESETS["imitate"]["smoke"], **given})
+    ic = configs.ImitateConfig(**{**configs.PRESETS["imitate"]["smoke"], **given})
     with pytest.raises(ValueError, match=message):
         runner.imitate(run, "walker_run", "side", ic, ["GIIL-FT"])
     assert not os.path.exists(os.path.join(run, "results.jsonl"))
@@ -297,9 +297,9 @@ def test_imitate_flags_out_of_range(given, message, smoke_run, tmp_path):
 
 def test_every_preset_passes_the_checks_and_the_command_line_prints_one_line():
     for preset in ("smoke", "cpu", "paper"):
-        for name, (cls, prefix) in checkpoint.COMPONENTS.items():
-            rundir.check_flags(cls(**presets.PRESETS[name][preset]), prefix)
-        rundir.check_flags(goal_inference.ImitateConfig(**presets.PRESETS["imitate"][preset]))
+        for name, (cls, prefix) in configs.COMPONENTS.items():
+            rundir.check_flags(cls(**configs.PRESETS[name][preset]), prefix)
+        rundir.check_flags(configs.ImitateConfig(**configs.PRESETS["imitate"][preset]))
     rundir.check_flags(experts.ExpertConfig())
     with pytest.raises(ValueError, match="--snapshot-every 0: must be >= 1"):
         rundir.check_flags(experts.ExpertConfig(snapshot_every=0))
@@ -649,7 +649,7 @@ def test_ctrl_c_then_the_same_imitate_command_goes_on_without_duplicates(smoke_r
     assert out.stderr.splitlines()[-1] == "interrupted: every evaluation finished is in the run's results.jsonl: the same command goes on from there"
     path = os.path.join(run, "results.jsonl")
     assert [(r["method"], r["seed"]) for r in rundir.read_jsonl(path)] == [("GIIL-ZS", 0), ("GIIL-ZS", 1), ("GIIL-ZS (demo 0)", 0)]
-    ic = goal_inference.ImitateConfig(**presets.PRESETS["imitate"]["smoke"], preset="smoke")  # what --preset smoke makes
+    ic = configs.ImitateConfig(**configs.PRESETS["imitate"]["smoke"], preset="smoke")  # what --preset smoke makes
     rows = runner.imitate(run, "walker_run", "side", ic, ["GIIL-FT"])
     assert [(r["method"], r["seed"]) for r in rows] == [("GIIL-FT", 0), ("GIIL-ZS (demo 0)", 1), ("GIIL-FT", 1)]
     assert runner.imitate(run, "walker_run", "side", ic, ["GIIL-FT"]) == [] and len(rundir.read_jsonl(path)) == 6
@@ -662,7 +662,7 @@ def test_an_empty_episode_file_is_collected_again(smoke_data, tmp_path):
     path = os.path.join(data, "demos", "walker_run_side", "01.npz")
     before = dict(np.load(path))
     open(path, "wb").close()  # zero bytes: a disk that was full, a copy cut off
-    collect.collect_demos(collect.CollectConfig(**presets.PRESETS["collect"]["smoke"]), data, workers=1, demos=[("walker", "run")])
+    collect.collect_demos(configs.CollectConfig(**configs.PRESETS["collect"]["smoke"]), data, workers=1, demos=[("walker", "run")])
     after = dict(np.load(path))
     assert all(np.array_equal(after[k], before[k]) for k in ("state", "action", "pixels")) and np.allclose(after["p"], before["p"], atol=1e-5)
     assert sorted(os.listdir(os.path.dirname(path))) == ["00.npz", "01.npz"]
@@ -916,7 +916,7 @@ def test_a_baseline_never_resumes_a_state_of_other_weights(smoke_run, tmp_path):
     from baselines import genrl
 
     cell = genrl.load_cell(copy_run(smoke_run, tmp_path), "walker_run", "side")
-    cfg = genrl.GenRLConfig(**presets.PRESETS["genrl"]["smoke"])
+    cfg = configs.GenRLConfig(**configs.PRESETS["genrl"]["smoke"])
     other = dict(cell, weights="6:0000000000000000")
     assert genrl.state_path(cell, "GenRL", cfg, 0) != genrl.state_path(other, "GenRL", cfg, 0)
     row = genrl.append_row(cell, "GenRL", 0, [1.0], 1.0, genrl.result_config(cfg))
@@ -969,14 +969,10 @@ def test_every_config_field_says_what_it_is_in_the_help():
     """--help shows each field's source comment (rundir.config_flags): every field of every config has one."""
     import dataclasses
 
-    import online
-    import ot_reward
-    from baselines import aime_nob, genrl
-
-    classes = [cls for cls, _ in checkpoint.COMPONENTS.values()] + [goal_inference.ImitateConfig, genrl.GenRLConfig, aime_nob.AIMENoBConfig,
-                                                                     online.OnlineConfig, ot_reward.OTConfig, collect.CollectConfig]
+    classes = [cls for cls, _ in configs.COMPONENTS.values()] + [configs.ImitateConfig, configs.GenRLConfig, configs.AIMENoBConfig,
+                                                                     configs.OnlineConfig, configs.OTConfig, configs.CollectConfig]
     for cls in classes:
-        comments = presets.field_comments(cls)
+        comments = configs.field_comments(cls)
         assert [f.name for f in dataclasses.fields(cls) if not comments.get(f.name)] == [], cls.__name__
     out = subprocess.run([sys.executable, "imitate.py", "--help"], cwd=ROOT, capture_output=True, text=True).stdout
     assert "Adam on g (ours; chosen on same-body cells," in out and "(default 0.0003, or the preset's)" in out

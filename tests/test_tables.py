@@ -9,13 +9,13 @@ import sys
 import numpy as np
 
 import goal_inference
-import presets
+import configs
 import runner
 import tables
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
-SMOKE = goal_inference.ImitateConfig(**presets.PRESETS["imitate"]["smoke"])
+SMOKE = configs.ImitateConfig(**configs.PRESETS["imitate"]["smoke"])
 
 
 def test_table_keeps_finished_cells(smoke_run, tmp_path):
@@ -58,7 +58,7 @@ def test_table_keeps_finished_cells(smoke_run, tmp_path):
 
 def test_the_zero_shot_columns_depend_on_the_evaluation_alone():
     """A GIIL-ZS row's config is the evaluation's (episodes and steps); GIIL-FT's adds the finetuning's, not the seeds."""
-    oc = goal_inference.online.OnlineConfig()
+    oc = goal_inference.configs.OnlineConfig()
     assert runner.result_config(SMOKE, "GIIL-ZS", oc) == {"eval_episodes": SMOKE.eval_episodes, "eval_steps": SMOKE.eval_steps}
     assert "seeds" not in runner.result_config(SMOKE, "GIIL-FT", oc) and runner.result_config(SMOKE, "GIIL-FT", oc)["goal_lr"] == SMOKE.goal_lr
 
@@ -109,7 +109,7 @@ def test_baselines_join_the_table_as_columns_and_are_not_rerun(smoke_run, tmp_pa
     one_cell = dict(demos_per_cell=2, shard=(0, 16))  # cell 0: stand, SE-SV
     tables.run_table(run, smoke, methods=("genrl", "aime-nob"), **one_cell)
     rows = runner.load_results(run)
-    seeds = {m: presets.PRESETS["genrl"]["smoke"]["seeds"] if m == "GenRL" else presets.PRESETS["aime_nob"]["smoke"]["seeds"] for m in ("GenRL", "AIME-NoB")}
+    seeds = {m: configs.PRESETS["genrl"]["smoke"]["seeds"] if m == "GenRL" else configs.PRESETS["aime_nob"]["smoke"]["seeds"] for m in ("GenRL", "AIME-NoB")}
     assert {r["method"] for r in rows} == {"GenRL", "AIME-NoB"} and {(r["task"], r["setting"]) for r in rows} == {("stand", "SE-SV")}
     assert len(rows) == sum(seeds.values())  # each baseline's seeds, no GIIL (not asked for)
     text = open(os.path.join(run, "tables.md")).read()

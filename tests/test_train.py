@@ -14,7 +14,7 @@ import collect
 import envs
 import evaluate
 import goal_vae
-import presets
+import configs
 import rundir
 import train
 from tests.fixtures import train_args
@@ -22,7 +22,7 @@ from tests.fixtures import train_args
 
 def test_smoke_run_writes_checkpoint_metrics_and_goal_reaching(smoke_run):
     ckpt = torch.load(os.path.join(smoke_run, "checkpoint.pt"), weights_only=True)
-    assert ckpt["step"] == presets.PRESETS["train"]["smoke"]["steps"] and ckpt["encoder"] == "default-v1"
+    assert ckpt["step"] == configs.PRESETS["train"]["smoke"]["steps"] and ckpt["encoder"] == "default-v1"
     assert ckpt["config"]["wm"]["obs"] == "state" and ckpt["config"]["wm"]["deter"] == 16  # the smoke preset, resolved
     lines = [json.loads(l) for l in open(os.path.join(smoke_run, "metrics.jsonl"))]
     assert [l["step"] for l in lines] == [2, 4, 6] and "actor_loss" in lines[-1] and "open_loop" in lines[-1] and -1 <= lines[-1]["open_loop_p_cos"] <= 1
@@ -31,7 +31,7 @@ def test_smoke_run_writes_checkpoint_metrics_and_goal_reaching(smoke_run):
     scores = record["scores"]
     assert list(scores) == ["stand", "walk", "run", "jump"] and record["agent"] == "walker" and record["preset"] == "smoke"
     assert record["weights"] == rundir.weights_id(torch.load(os.path.join(smoke_run, "checkpoint.pt"), weights_only=True))
-    assert record["settings"] == {"eval_episodes": 1, "eval_steps": 10, "eval_seed": checkpoint.TrainConfig.eval_seed}
+    assert record["settings"] == {"eval_episodes": 1, "eval_steps": 10, "eval_seed": configs.TrainConfig.eval_seed}
     assert all(len(s["policy"]) == len(s["random"]) == 2 for s in scores.values())  # smoke: 2 demos x 1 episode
     assert os.path.getsize(os.path.join(smoke_run, "learning_curve.png")) > 1000
     imagination = json.load(open(os.path.join(smoke_run, "imagination.json")))
@@ -99,7 +99,7 @@ def test_a_smaller_older_d_body_grows_to_the_preset_before_training(smoke_data, 
     older = {k: v for k, v in json.load(open(complete)).items() if k != "history_from"}  # written before history_from existed
     open(complete, "w").write(json.dumps(older))
     before = {n: os.path.getmtime(os.path.join(folder, n)) for n in os.listdir(folder) if n.endswith(".npz")}
-    monkeypatch.setitem(presets.PRESETS["collect"], "smoke", {**presets.PRESETS["collect"]["smoke"], "task_episodes": 2})
+    monkeypatch.setitem(configs.PRESETS["collect"], "smoke", {**configs.PRESETS["collect"]["smoke"], "task_episodes": 2})
     cfgs = train.resolve_configs(train_args(data=root), "smoke")
     _, data, held_out, _ = checkpoint.prepare_data(cfgs)
     names = [n for n in os.listdir(folder) if n.endswith(".npz")]
@@ -157,7 +157,7 @@ def test_exported_agent_loads_weights_only_and_acts_like_its_run(smoke_run, tmp_
     agent = torch.load(path, weights_only=True)
     assert "optims" not in agent and "rng" not in agent
     # D_body is not shipped: the agent reads demos from its preset's default folder; where it trained is kept
-    assert agent["config"]["train"]["data"] == presets.DATA["smoke"] and agent["trained_data"] == checkpoint.load_run(smoke_run)[0]["train"].data
+    assert agent["config"]["train"]["data"] == configs.DATA["smoke"] and agent["trained_data"] == checkpoint.load_run(smoke_run)[0]["train"].data
     _, run_models, _ = checkpoint.load_run(smoke_run)
     _, agent_models, _ = checkpoint.load_run(os.path.dirname(path))
     for name, model in run_models.items():
@@ -195,7 +195,7 @@ def test_a_copy_of_an_exported_agent_trains_on_from_its_weights(smoke_run, smoke
     run = str(tmp_path / "longer")
     checkpoint.export_agent(smoke_run, run)
     shipped = torch.load(os.path.join(run, "checkpoint.pt"), weights_only=True)
-    steps = presets.PRESETS["train"]["smoke"]["steps"]
+    steps = configs.PRESETS["train"]["smoke"]["steps"]
     train.train(train.resolve_configs(train_args(data=smoke_data, steps=steps + 2), "smoke"), run, resume=True)
     ckpt = torch.load(os.path.join(run, "checkpoint.pt"), weights_only=True)
     assert ckpt["step"] == steps + 2 and "optims" in ckpt
@@ -244,7 +244,7 @@ def test_polish_clones_on_the_final_models_and_leaves_training_untouched(smoke_d
 
 def test_a_config_stored_before_the_cloning_had_its_own_reads_the_actor_critics_cloning_fields(smoke_run, tmp_path):
     """The shipped agents keep the cloning's fields (bc, bc_final, ...) in the actor-critic's config: they load into
-    cloning.CloningConfig, with the same values, and the run resumes as if stored today."""
+    configs.CloningConfig, with the same values, and the run resumes as if stored today."""
     ckpt = torch.load(os.path.join(smoke_run, "checkpoint.pt"), weights_only=True)
     old = {k: v for k, v in ckpt["config"].items() if k != "cloning"}
     old["ac"] = {**ckpt["config"]["ac"], **ckpt["config"]["cloning"], "bc_final": 0.25}

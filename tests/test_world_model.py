@@ -7,7 +7,7 @@ import torch.nn.functional as F
 from torch.distributions import Categorical, Independent, Normal, OneHotCategorical, kl_divergence
 
 import evaluate
-import presets
+import configs
 import train
 import world_model as W
 from tests.fixtures import random_batch, train_args
@@ -16,7 +16,7 @@ torch.set_num_threads(1)
 
 
 def smoke_model(obs="state", obs_dim=5, action_dim=2, **overrides):
-    cfg = W.WorldModelConfig(**{**presets.PRESETS["wm"]["smoke"], "obs": obs, **overrides})
+    cfg = configs.WorldModelConfig(**{**configs.PRESETS["wm"]["smoke"], "obs": obs, **overrides})
     obs_shape = obs_dim if obs == "state" else (64, 64, 3)
     return W.WorldModel(cfg, obs_shape, action_dim), obs_shape
 
@@ -30,7 +30,7 @@ def test_gaussian_kl_matches_torch_distributions():
 
 
 def categorical(stoch=3, discrete=5, unimix=0.01):
-    return W.make_latent(W.WorldModelConfig(stoch=stoch, discrete=discrete, unimix=unimix))
+    return W.make_latent(configs.WorldModelConfig(stoch=stoch, discrete=discrete, unimix=unimix))
 
 
 def test_categorical_kl_matches_torch_distributions():
@@ -45,7 +45,7 @@ def test_categorical_kl_matches_torch_distributions():
 
 
 def test_gaussian_latent_sample_mode_and_entropy():
-    latent, g = W.make_latent(W.WorldModelConfig(stoch=4)), torch.Generator().manual_seed(0)
+    latent, g = W.make_latent(configs.WorldModelConfig(stoch=4)), torch.Generator().manual_seed(0)
     stats = latent.stats(torch.randn(6, latent.out_dim, generator=g))
     noise = torch.randn(6, latent.size, generator=g)
     assert torch.equal(latent.sample(stats, noise), stats["mean"] + stats["std"] * noise)
