@@ -19,11 +19,11 @@ from tqdm import tqdm
 
 import checkpoint
 import collect
+import configs
 import envs
 import evaluate
 import goal_inference
 import online
-import configs
 import rundir
 from video_encoder import check_same_encoder
 

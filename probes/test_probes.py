@@ -11,8 +11,8 @@ import pytest
 import torch
 
 import checkpoint
-import evaluate
 import configs
+import evaluate
 import video_encoder
 from baselines import aime_nob, genrl
 from conftest import probe_script

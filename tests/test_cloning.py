@@ -5,8 +5,8 @@ import torch
 from torch.distributions import Normal, TanhTransform, TransformedDistribution
 
 import cloning as C
-import policy as P
 import configs
+import policy as P
 
 torch.set_num_threads(1)
 

@@ -6,9 +6,9 @@ import pytest
 import torch
 
 import collect
+import configs
 import envs
 import experts
-import configs
 
 SMOKE = configs.CollectConfig(**configs.PRESETS["collect"]["smoke"])
 

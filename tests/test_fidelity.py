@@ -4,9 +4,9 @@ import numpy as np
 import pytest
 import torch
 
+import configs
 import fidelity
 import goal_vae
-import configs
 import world_model as W
 from tests.fixtures import train_args
 

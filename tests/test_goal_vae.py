@@ -5,8 +5,8 @@ import torch
 import torch.nn.functional as F
 from torch.distributions import Independent, Normal, OneHotCategorical, kl_divergence
 
-import fidelity
 import configs
+import fidelity
 import world_model as W
 from tests.fixtures import random_batch
 from configs import GoalVAEConfig

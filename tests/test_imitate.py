@@ -9,8 +9,8 @@ import pytest
 import torch
 
 import checkpoint
-import goal_inference
 import configs
+import goal_inference
 import runner
 
 SMOKE = configs.ImitateConfig(**configs.PRESETS["imitate"]["smoke"])

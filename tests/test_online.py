@@ -8,11 +8,11 @@ import numpy as np
 import torch
 
 import checkpoint
+import configs
 import envs
 import fidelity
 import goal_inference
 import online
-import configs
 import rundir
 import runner
 import tables

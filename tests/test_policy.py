@@ -5,8 +5,8 @@ import pytest
 import torch
 from torch.distributions import Normal, TanhTransform, TransformedDistribution
 
-import policy as P
 import configs
+import policy as P
 import world_model as W
 from tests.fixtures import random_batch
 from configs import DistanceConfig

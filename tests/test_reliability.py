@@ -16,13 +16,13 @@ import torch
 
 import checkpoint
 import collect
+import configs
 import envs
 import evaluate
 import experts
-import goal_vae
 import goal_inference
+import goal_vae
 import imitate
-import configs
 import rundir
 import runner
 import tables
@@ -609,7 +609,7 @@ def test_a_baseline_runs_a_cell_in_one_process_at_a_time(name, smoke_run, tmp_pa
         other.wait()
     monkeypatch.setattr(sys, "argv", [script, "--demo", "walker_stand", "--run", run, "--preset", "smoke"])
     baseline.main()  # its process gone: the lock is stale, the cell runs and its lock goes
-    assert len(rundir.read_jsonl(os.path.join(run, "results.jsonl"))) == presets.PRESETS[name]["smoke"]["seeds"] and not os.path.exists(lock)
+    assert len(rundir.read_jsonl(os.path.join(run, "results.jsonl"))) == configs.PRESETS[name]["smoke"]["seeds"] and not os.path.exists(lock)
 
 
 def test_paper_preset_needs_a_gpu_or_allow_cpu_and_sigterm_releases_the_lock(smoke_data, tmp_path, monkeypatch):
@@ -1010,7 +1010,7 @@ def test_a_rerun_with_other_settings_or_weights_keeps_the_kept_rows_videos(smoke
     first = runner.imitate(run, "walker_run", "side", SMOKE_IMITATE)
     kept = snapshot(folder)
     assert list(kept) == [r["video"] for r in first if "video" in r] and list(kept)[0].startswith("walker_run_side_GIIL-ZS_s0_")
-    other = runner.imitate(run, "walker_run", "side", goal_inference.ImitateConfig(**{**presets.PRESETS["imitate"]["smoke"], "eval_episodes": 2}))
+    other = runner.imitate(run, "walker_run", "side", configs.ImitateConfig(**{**configs.PRESETS["imitate"]["smoke"], "eval_episodes": 2}))
     path = os.path.join(run, "checkpoint.pt")
     ckpt = torch.load(path, weights_only=True)
     ckpt["models"]["actor"] = {k: v + 1e-3 for k, v in ckpt["models"]["actor"].items()}  # as a resumed training would
@@ -1027,32 +1027,28 @@ def test_a_count_has_an_upper_bound_that_every_preset_keeps(smoke_run, tmp_path)
     in one line; every preset and default of every config keeps to it."""
     import dataclasses
 
-    import online
-    import policy
-    from baselines import aime_nob, genrl
-
     huge = 99999999999999999999
     with pytest.raises(ValueError, match=rf"^--seeds {huge}: must be <= 1000000$"):
         rundir.check_flags(dataclasses.replace(SMOKE_IMITATE, seeds=huge))
     with pytest.raises(ValueError, match=r"^--ac-horizon 1000001: must be <= 1000000$"):
-        rundir.check_flags(policy.ActorCriticConfig(horizon=10**6 + 1), "ac-")
+        rundir.check_flags(configs.ActorCriticConfig(horizon=10**6 + 1), "ac-")
     with pytest.raises(ValueError, match=rf"^--seed {huge}: must be <= 1000000$"):  # a range (0, None) too
-        rundir.check_flags(checkpoint.TrainConfig(seed=huge))
+        rundir.check_flags(configs.TrainConfig(seed=huge))
     with pytest.raises(ValueError, match=rf"^--seeds {huge}: must be <= 1000000$"):
-        genrl.GenRLConfig(seeds=huge)
+        configs.GenRLConfig(seeds=huge)
     with pytest.raises(ValueError, match=rf"^--threads {huge}: must be <= 1000000$"):
         rundir.use_threads(huge)
-    rundir.check_flags(checkpoint.TrainConfig(seed=10**6))  # the bound itself is allowed
+    rundir.check_flags(configs.TrainConfig(seed=10**6))  # the bound itself is allowed
     out = subprocess.run([sys.executable, "tables.py", "--run", copy_run(smoke_run, tmp_path), "--seeds", str(huge)], cwd=ROOT,
                          capture_output=True, text=True)
     assert out.returncode == 1 and out.stderr == f"error: --seeds {huge}: must be <= 1000000\n"
     for preset in ("smoke", "cpu", "paper"):
-        for name, (cls, prefix) in {**checkpoint.COMPONENTS, "imitate": (goal_inference.ImitateConfig, ""), "online": (online.OnlineConfig, "online-"),
-                                    "collect": (collect.CollectConfig, "")}.items():
-            rundir.check_flags(cls(**presets.PRESETS[name][preset]), prefix)
-    for name, cls in (("genrl", genrl.GenRLConfig), ("aime_nob", aime_nob.AIMENoBConfig)):
-        for preset in presets.PRESETS[name]:
-            cls(**presets.PRESETS[name][preset])  # checked as it is made
+        for name, (cls, prefix) in {**configs.COMPONENTS, "imitate": (configs.ImitateConfig, ""), "online": (configs.OnlineConfig, "online-"),
+                                    "collect": (configs.CollectConfig, "")}.items():
+            rundir.check_flags(cls(**configs.PRESETS[name][preset]), prefix)
+    for name, cls in (("genrl", configs.GenRLConfig), ("aime_nob", configs.AIMENoBConfig)):
+        for preset in configs.PRESETS[name]:
+            cls(**configs.PRESETS[name][preset])  # checked as it is made
     rundir.check_flags(experts.ExpertConfig())
 
 

@@ -8,8 +8,8 @@ import sys
 
 import numpy as np
 
-import goal_inference
 import configs
+import goal_inference
 import runner
 import tables
 

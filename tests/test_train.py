@@ -11,10 +11,10 @@ import torch
 import checkpoint
 import cloning
 import collect
+import configs
 import envs
 import evaluate
 import goal_vae
-import configs
 import rundir
 import train
 from tests.fixtures import train_args

@@ -6,8 +6,8 @@ import torch
 import torch.nn.functional as F
 from torch.distributions import Categorical, Independent, Normal, OneHotCategorical, kl_divergence
 
-import evaluate
 import configs
+import evaluate
 import train
 import world_model as W
 from tests.fixtures import random_batch, train_args
