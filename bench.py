@@ -152,42 +152,6 @@ def bench_components():
           f"this core's fp32 peak {peak / 1e9:.0f} GFLOP/s: at most {total_s * peak / total_flops:.2f}x on one thread with the same FLOPs")
 
 
-def bench_world_models(variants=(("Gaussian z (cpu preset)", {}), ("categorical z, 32 x 32 (--wm-stoch 32 --wm-discrete 32)", dict(stoch=32, discrete=32)),
-                                   ("latent overshooting 25 (--wm-overshoot 25)", dict(overshoot=25)))):
-    """A world-model stage update (Eq. 2 and Eq. 3, train.py --wm-steps) of each world-model variant of docs/imagination.md
-    at the cpu preset's sizes, one thread, alternating in this one run; each against the first."""
-    import torch
-
-    import goal_vae
-    import rundir
-    import world_model as W
-    from tests.fixtures import random_batch
-
-    torch.set_num_threads(1)
-    rundir.fast_matmul()
-    updates = {}
-    for name, overrides in variants:
-        wm = W.WorldModel(configs.WorldModelConfig(**overrides), 24, 6)
-        vae = goal_vae.GoalVAE(configs.GoalVAEConfig(), 512, wm.cfg.deter, wm.latent)
-        batch = random_batch("state", 24, 6, wm.cfg.batch, wm.cfg.seq_len, p_dim=512)
-        opt = torch.optim.Adam([*wm.parameters(), *vae.parameters()], lr=3e-4)
-
-        def update(wm=wm, vae=vae, batch=batch, opt=opt):
-            loss, _, post = wm.loss(batch)
-            opt.zero_grad(set_to_none=True)
-            (loss + vae.loss(batch["p"], post)[0]).backward()
-            opt.step()
-
-        updates[name] = update
-    times = {}
-    for _ in range(2):
-        for name, update in updates.items():
-            times.setdefault(name, []).append(timed(update, repeat=5, warmup=2))
-    first = np.mean(times[variants[0][0]])
-    for name in updates:
-        print(f"world model    {name}: {1000 * np.mean(times[name]):.0f} ms per stage update, {np.mean(times[name]) / first:.2f}x")
-
-
 def bench_gpu():
     """Each phase-1 component's update on the GPU, at the cpu preset's sizes and at the paper preset's (pixels)."""
     import torch
@@ -236,29 +200,22 @@ def train_updates_per_s(tree, data, threads, logs=4, every=10):
 
 
 # GIIL-FT's update (goal_inference.finetune_goal) of the shipped walker on the stickman's side-view walk demos, timed in a
-# source tree of its own (its load_run was train.py's before checkpoint.py): seconds per update after 3 warm-up updates
+# source tree of its own (this one, or a commit's since goal_inference.py): seconds per update after 3 warm-up updates
 FT_UPDATE = """
 import dataclasses, sys, time
 import torch
-import collect, rundir
-try:
-    import goal_inference as phase2
-except ImportError:
-    import imitate as phase2  # before goal_inference.py
+import collect, goal_inference, rundir
+from checkpoint import load_run
 try:  # every config in configs.py, or a commit's from before it
     from configs import ImitateConfig, OTConfig
 except ImportError:
     from ot_reward import OTConfig
-    ImitateConfig = phase2.ImitateConfig
-try:
-    from checkpoint import load_run
-except ImportError:
-    from train import load_run
+    ImitateConfig = goal_inference.ImitateConfig
 torch.set_num_threads(1)
 rundir.fast_matmul()
 cfgs, models, _ = load_run(sys.argv[1], "cpu")
 demo_p = [d["p"] for d in collect.load_folder(sys.argv[2], ("p",))]
-run = lambda n: phase2.finetune_goal(models, cfgs, dataclasses.replace(ImitateConfig(), steps=n), OTConfig(),
+run = lambda n: goal_inference.finetune_goal(models, cfgs, dataclasses.replace(ImitateConfig(), steps=n), OTConfig(),
                                      torch.as_tensor(demo_p[0][-1]), demo_p, 0, "cpu")
 run(3)
 start = time.perf_counter()
@@ -290,15 +247,12 @@ print((time.perf_counter() - start) / 4)
 
 # The baselines' cost, timed in a source tree: seconds per GenRL update (genrl.train_policy) and per AIME-NoB round (one
 # episode collected, encoded and OT-labelled, then its 50 updates: aime_nob.train_seed), the shipped walker on its own
-# side-view walk demos, one thread, after a warm-up
+# side-view walk demos, one thread, after a warm-up (this tree, or a commit's since baselines/)
 BASELINE_UPDATE = """
 import dataclasses, sys, time
 import numpy as np, torch
 import checkpoint
-try:  # this layout, or a commit's from before baselines/
-    from baselines import aime_nob, genrl
-except ImportError:
-    import aime_nob, genrl
+from baselines import aime_nob, genrl
 try:  # every config in configs.py, or a commit's from before it
     from configs import AIMENoBConfig, GenRLConfig
 except ImportError:
@@ -425,7 +379,7 @@ def bench_ot():
 
 
 AGAINST = ("phase1", "finetune", "collect", "baselines")  # the sections that take --against
-SECTIONS = {"render": bench_render, "features": bench_features, "collect": bench_collect, "components": bench_components, "world_models": bench_world_models, "phase1": bench_phase1, "finetune": bench_finetune,
+SECTIONS = {"render": bench_render, "features": bench_features, "collect": bench_collect, "components": bench_components, "phase1": bench_phase1, "finetune": bench_finetune,
             "baselines": bench_baselines, "ot": bench_ot, "gpu": bench_gpu}
 
 if __name__ == "__main__":

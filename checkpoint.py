@@ -34,7 +34,8 @@ from video_encoder import check_same_encoder, load_encoder
 
 # Switches measured worse and deleted, at the value that turned each off (docs/ablations.md names each one's result and
 # the commit that had it): a stored config that holds one at that value loads as before, one trained with it on is refused
-REMOVED = {"train": dict(act_temperature=0.0, cover_edges=0, fidelity_every=0),
+REMOVED = {"train": dict(act_temperature=0.0, cover_edges=0, fidelity_every=0, wm_steps=0),
+           "wm": dict(overshoot=0, overshoot_starts=4),
            "ac": dict(reward="distance", mixture=1, actor_input="feat", uncertainty=0.0),
            "cloning": dict(bc_awr=0.0, bc_polish_ema=0.0, bc_polish_fresh=0)}
 
@@ -128,7 +129,7 @@ def load_run(run_dir, device="cpu", env=None):
 
 
 # fields that may differ when a run is resumed: they do not change what the models are
-RESUMABLE = {"steps", "wm_steps", "log_every", "checkpoint_every", "eval_episodes", "eval_steps", "eval_seed", "data", "threads",
+RESUMABLE = {"steps", "log_every", "checkpoint_every", "eval_episodes", "eval_steps", "eval_seed", "data", "threads",
              "bc_polish", "bc_polish_batches"}  # the polish starts from the training actor, kept apart in the checkpoint
 LR_FLAGS = {"world_model": ("wm", "lr"), "goal_vae": ("goal", "lr"), "dist_net": ("dist", "lr"), "actor": ("ac", "actor_lr"), "critic": ("ac", "critic_lr")}
 
@@ -145,12 +146,8 @@ def resume_from(ckpt_path, resume, cfgs, models, optims, encoder, device, rng):
     changed = [f"{n}.{k}" for n in config for k in config[n] if k not in RESUMABLE and saved[n].get(k) != config[n][k]]
     if changed:
         raise ValueError(f"{ckpt_path} was trained with other {', '.join(changed)}: pass the same flags to resume, or start a new run")
-    if config["train"]["wm_steps"] + config["train"]["steps"] < ckpt["step"]:
-        raise ValueError(f"--wm-steps {config['train']['wm_steps']} + --steps {config['train']['steps']} is below the update {ckpt['step']} of "
-                         f"{ckpt_path}: pass --steps {ckpt['step'] - config['train']['wm_steps']} or more")
-    stage = (saved["train"].get("wm_steps", 0), config["train"]["wm_steps"])
-    if stage[0] != stage[1] and ckpt["step"] > min(stage):  # a longer or shorter stage, but only while the run is in it
-        raise ValueError(f"{ckpt_path} is at update {ckpt['step']}, past its world-model stage of {stage[0]} updates: pass --wm-steps {stage[0]}")
+    if config["train"]["steps"] < ckpt["step"]:
+        raise ValueError(f"--steps {config['train']['steps']} is below the update {ckpt['step']} of {ckpt_path}: pass --steps {ckpt['step']} or more")
     check_same_encoder(ckpt["encoder"], encoder.name, ckpt_path)
     check_weights(ckpt, models, ckpt_path)
     for name, model in models.items():

@@ -25,14 +25,11 @@ import rundir
 
 @dataclasses.dataclass
 class TrainConfig:
-    ranges: ClassVar[dict] = {"seed": (0, None), "policy_start": (0, None), "wm_steps": (0, None), "holdout_every": (2, None)}
+    ranges: ClassVar[dict] = {"seed": (0, None), "policy_start": (0, None), "holdout_every": (2, None)}
     env: str = "walker"  # the agent's body
     preset: str = "cpu"  # smoke | cpu | paper: sizes of every component and of D_body
     seed: int = 0  # the training seed: torch's and the batches' draws
     steps: int = 3000  # updates (ours: a CPU budget, docs/results.md; Dreamer-scale runs use ~1e5 and more)
-    # updates of the world model and goal VAE alone (Eq. 2, 3) before the `steps` of phase 1 (ours: a world-model stage, as
-    # V-D4RL's offline DreamerV2 and GenRL pretrain their world models before any behaviour learning)
-    wm_steps: int = 0
     policy_start: int = 1000  # updates of phase 1 before the actor-critic starts (ours)
     holdout_every: int = 20  # every 20th D_body episode is held out of training, for evaluate.evaluate_imagination (ours)
     eval_episodes: int = 3  # goal-reaching benchmark (evaluate.py, ours): episodes per own-body demo goal
@@ -47,7 +44,7 @@ class TrainConfig:
 
 @dataclasses.dataclass
 class WorldModelConfig:
-    ranges: ClassVar[dict] = {"overshoot": (0, None), "discrete": (0, None), "unimix": (0, 1), "grad_clip": "> 0", "min_std": "> 0"}
+    ranges: ClassVar[dict] = {"discrete": (0, None), "unimix": (0, 1), "grad_clip": "> 0", "min_std": "> 0"}
     choices: ClassVar[dict] = {"obs": ("state", "pixels")}  # train.py's --obs accepts these alone
     obs: str = "state"  # 'state': proprioception (ours, a CPU budget; deviation) or 'pixels': 64x64x3 (the paper)
     deter: int = 200  # GRU state h_t, Dreamer V1
@@ -62,10 +59,6 @@ class WorldModelConfig:
     free_nats: float = 1.0  # Dreamer V3: each KL term is clipped below 1 nat per step
     kl_dyn: float = 0.5  # Dreamer V3 KL balancing: weight of KL(sg(post) || prior), trains the prior
     kl_rep: float = 0.1  # Dreamer V3 KL balancing: weight of KL(post || sg(prior)), trains the posterior
-    # PlaNet's latent overshooting (Hafner et al. 2019; ours here, `overshooting_kl`): also KL(sg(post) || the prior rolled
-    # this many steps open loop with the recorded actions), weighed as kl_dyn; 0: Eq. 2 alone
-    overshoot: int = 0
-    overshoot_starts: int = 4  # open-loop rollouts per segment, from random steps of it (ours)
     batch: int = 16  # sequences per batch (ours, a CPU budget; Dreamer V1: 50)
     seq_len: int = 50  # steps per sequence, Dreamer V1
     lr: float = 6e-4  # Adam, Dreamer V1

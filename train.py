@@ -7,8 +7,6 @@ One update, in the order of Sec. 4:
   Eq. 4  goal-conditioned actor-critic in imagination, reward -d(s, g)   (after `policy_start` updates,
          once the world model and distance give a meaningful reward)
   ours   hindsight behaviour cloning beside Eq. 4's actor loss, and a cloning polish after the last update (cloning.py)
-The first `wm_steps` updates (ours; 0 in every preset) are a world-model stage, Eq. 2 and 3 alone; `steps` updates of
-all of the above follow.
 Ends with the learning curve (learning_curve.png) and the goal-reaching benchmark (evaluate.py): the multi-task
 policy in the real environment with its own body's side-view demos as goals, against random actions.
 
@@ -57,9 +55,7 @@ def resolve_configs(args, preset):
 def log_line(m):
     """One line per log step, grouped by equation; the actor-critic's part only once it has started."""
     line = (f"{m['step']}: Eq.2 wm {m['wm_loss']:.2f} (recon {m['recon']:.2f} kl {m['kl']:.2f} open-loop {m['open_loop']:.3f}, "
-            f"p cos {m['open_loop_p_cos']:.2f}) | Eq.3 goal {m['goal_loss']:.2f} (cos {m['goal_cos']:.2f})")
-    if "dist_loss" in m:  # not in the world-model stage
-        line += f" | Eq.7 dist {m['dist_loss']:.3f}"
+            f"p cos {m['open_loop_p_cos']:.2f}) | Eq.3 goal {m['goal_loss']:.2f} (cos {m['goal_cos']:.2f}) | Eq.7 dist {m['dist_loss']:.3f}")
     if "d_enc" in m:
         line += " (d of encoder goals 1/5/15/30 ahead, other: " + " ".join(f"{d:.2f}" for d in m["d_enc"]) + ")"
     if "actor_loss" in m:
@@ -85,8 +81,6 @@ def train(cfgs, run_dir, resume):
         rundir.check_flags(config, COMPONENTS[name][1])
     if cfgs["cloning"].bc_advantage and cfgs["dist"].reading != "td":
         raise ValueError("--ac-bc-advantage weighs the clone by the td reading's value: pass --dist-reading td with it")
-    if cfgs["wm"].overshoot >= cfgs["wm"].seq_len:
-        raise ValueError(f"--wm-overshoot {cfgs['wm'].overshoot} rolls past a segment: pass one below --wm-seq-len {cfgs['wm'].seq_len}")
     ckpt_path = os.path.join(run_dir, "checkpoint.pt")
     if resume and not os.path.exists(ckpt_path):
         raise ValueError(f"--resume: no checkpoint at {ckpt_path}; drop --resume to start a new run there")
@@ -143,7 +137,7 @@ def pretrain(cfgs, run_dir, resume):
     rundir.trim_jsonl(log_path, first)  # rows a killed run logged after its checkpoint
     keep = lambda done, **actors: checkpoint.save(ckpt_path, cfgs, done, rng, encoder, shapes, models, optims, **actors)
     update = lambda name, loss, term: rundir.checked_step(optims[name], loss, term, step, lambda: checkpoint.stop_hint(ckpt_path, saved, cfgs, name), clips[name])
-    saved, t0, metrics, total = first, time.time(), {}, tc.wm_steps + tc.steps
+    saved, t0, metrics, total = first, time.time(), {}, tc.steps
     for step in (bar := tqdm(range(first, total), initial=first, total=total, desc=f"train {os.path.basename(run_dir)}")):
         batch = data.sample(wc.batch, rng, device)
         logged = (step + 1) % tc.log_every == 0 or step + 1 == total  # the update whose metrics the log row keeps
@@ -154,48 +148,43 @@ def pretrain(cfgs, run_dir, resume):
         loss, m3 = vae.loss(batch["p"], post)
         update("goal_vae", loss, "Eq. 3 goal-VAE loss")
         metrics.update(m2 | m3)
-        stage = step < tc.wm_steps  # the world-model stage: Eq. 2 and 3 alone; then phase 1, Eq. 7 and Eq. 4 too
-        if not stage:
-            post_feat = wm.feat(post).detach()  # (B, T, F)
-            # Eq. 7: the temporal distance on pairs of posterior states, and of states and encoder goals (ours)
-            with torch.no_grad():  # the goal encoder's g of every frame (B, T, F), what GIIL-ZS feeds the policy, and of the last (B, F)
-                goal_feat, final_goal = vae.goal(batch["p"]), vae.goal(batch["p_last"])
-            if dc.reading == "td":  # ours (HILP's value learning, distance.py), in place of Eq. 7's labels
-                with torch.no_grad():
-                    x = dist_net.embed(post_feat)
-                    goals = [x, dist_net.embed(goal_feat)] if dc.encoder_goals else [x]
-                loss, m7 = distance.td_loss(dist_net, models["slow_dist"], x, goals, batch["is_first"], dc.pairs)
-                update("dist_net", loss, "temporal-difference distance loss")
-                policy.ema_update(models["slow_dist"], dist_net, dc.slow_rate)
-            else:
-                pairs = distance.sample_pairs(batch["episode"], batch["is_first"], dc.pairs)
-                loss, m7 = distance.distance_loss(dist_net, post_feat, pairs, wc.seq_len, dc.contrastive_weight, goal_feat if dc.encoder_goals else None)
-                update("dist_net", loss, "Eq. 7 distance loss")
-            metrics.update(m7)
-            # Eq. 4 after policy_start updates, once d gives a meaningful reward: the actor-critic in imagination, reward -d(s, g)
-            if step >= tc.wm_steps + tc.policy_start:
-                start, index = policy.sample_starts(post, ac.starts)
-                goals = policy.sample_goals(post_feat, goal_feat, index, batch["is_first"], ac.goal_mix, ac.goal_near)
-                a_loss, c_loss, m4 = policy.policy_losses(wm, dist_net, actor, critic, slow_critic, models["return_norm"], start, goals, ac)
-                # ours, beside Eq. 4: hindsight behaviour cloning of D_body's actions (cloning.py), in cc.bc_steps actor steps
-                value = cloning.td_value(dist_net, post_feat, goal_feat, final_goal) if cc.bc_advantage else None
-                clone = lambda: cloning.bc_loss(actor, post_feat, goal_feat, batch["action"], final_goal, cc.bc_final, value, cc.bc_advantage)
-                bc, m_bc = clone() if cc.bc else (0.0, {})
-                if logged and cc.bc:  # Eq. 4's share of the actor's step against the cloning's (evaluate.gradient_share)
-                    m4.update(policy.gradient_norms(actor, eq4=a_loss, bc=cc.bc * bc))
-                update("actor", a_loss + cc.bc * bc, "Eq. 4 actor loss")
-                update("critic", c_loss, "Eq. 4 critic loss")
-                policy.ema_update(slow_critic, critic, ac.slow_critic_rate)
-                for _ in range(cc.bc_steps - 1 if cc.bc else 0):  # more cloning steps on this batch, each with fresh goals
-                    bc, m_bc = clone()
-                    update("actor", cc.bc * bc, "behaviour-cloning loss")
-                metrics.update(m4 | m_bc)
+        post_feat = wm.feat(post).detach()  # (B, T, F)
+        # Eq. 7: the temporal distance on pairs of posterior states, and of states and encoder goals (ours)
+        with torch.no_grad():  # the goal encoder's g of every frame (B, T, F), what GIIL-ZS feeds the policy, and of the last (B, F)
+            goal_feat, final_goal = vae.goal(batch["p"]), vae.goal(batch["p_last"])
+        if dc.reading == "td":  # ours (HILP's value learning, distance.py), in place of Eq. 7's labels
+            with torch.no_grad():
+                x = dist_net.embed(post_feat)
+                goals = [x, dist_net.embed(goal_feat)] if dc.encoder_goals else [x]
+            loss, m7 = distance.td_loss(dist_net, models["slow_dist"], x, goals, batch["is_first"], dc.pairs)
+            update("dist_net", loss, "temporal-difference distance loss")
+            policy.ema_update(models["slow_dist"], dist_net, dc.slow_rate)
+        else:
+            pairs = distance.sample_pairs(batch["episode"], batch["is_first"], dc.pairs)
+            loss, m7 = distance.distance_loss(dist_net, post_feat, pairs, wc.seq_len, dc.contrastive_weight, goal_feat if dc.encoder_goals else None)
+            update("dist_net", loss, "Eq. 7 distance loss")
+        metrics.update(m7)
+        # Eq. 4 after policy_start updates, once d gives a meaningful reward: the actor-critic in imagination, reward -d(s, g)
+        if step >= tc.policy_start:
+            start, index = policy.sample_starts(post, ac.starts)
+            goals = policy.sample_goals(post_feat, goal_feat, index, batch["is_first"], ac.goal_mix, ac.goal_near)
+            a_loss, c_loss, m4 = policy.policy_losses(wm, dist_net, actor, critic, slow_critic, models["return_norm"], start, goals, ac)
+            # ours, beside Eq. 4: hindsight behaviour cloning of D_body's actions (cloning.py), in cc.bc_steps actor steps
+            value = cloning.td_value(dist_net, post_feat, goal_feat, final_goal) if cc.bc_advantage else None
+            clone = lambda: cloning.bc_loss(actor, post_feat, goal_feat, batch["action"], final_goal, cc.bc_final, value, cc.bc_advantage)
+            bc, m_bc = clone() if cc.bc else (0.0, {})
+            if logged and cc.bc:  # Eq. 4's share of the actor's step against the cloning's (evaluate.gradient_share)
+                m4.update(policy.gradient_norms(actor, eq4=a_loss, bc=cc.bc * bc))
+            update("actor", a_loss + cc.bc * bc, "Eq. 4 actor loss")
+            update("critic", c_loss, "Eq. 4 critic loss")
+            policy.ema_update(slow_critic, critic, ac.slow_critic_rate)
+            for _ in range(cc.bc_steps - 1 if cc.bc else 0):  # more cloning steps on this batch, each with fresh goals
+                bc, m_bc = clone()
+                update("actor", cc.bc * bc, "behaviour-cloning loss")
+            metrics.update(m4 | m_bc)
         if logged:
             metrics.update(step=step + 1, updates_per_s=tc.log_every / (time.time() - t0))
-            if stage:
-                metrics.update(evaluate.open_loop_metrics(wm, vae, data.sample(wc.batch, rng, device), wc.seq_len // 2))
-            else:
-                metrics.update(diagnostics(models, cfgs, data, rng, device, post, post_feat, goal_feat, batch["is_first"], step + 1 - tc.wm_steps))
+            metrics.update(diagnostics(models, cfgs, data, rng, device, post, post_feat, goal_feat, batch["is_first"], step + 1))
             rundir.append_jsonl(log_path, metrics)
             bar.write(log_line(metrics))
             t0 = time.time()

@@ -332,30 +332,4 @@ class WorldModel(nn.Module):
         loss = recon.mean() + cfg.kl_dyn * dyn + cfg.kl_rep * rep
         metrics = {"wm_loss": loss.item(), "recon": recon.mean().item(), "kl": kl_dyn.mean().item(),
                    "post_ent": latent.entropy(post).mean().item(), "prior_ent": latent.entropy(prior).mean().item()}
-        if cfg.overshoot:
-            overshoot = self.overshooting_kl(post, batch["action"], batch["is_first"])  # (N, overshoot)
-            loss = loss + cfg.kl_dyn * overshoot.clamp(min=cfg.free_nats).mean()
-            metrics.update(wm_loss=loss.item(), kl_overshoot=overshoot.mean().item())
         return loss, metrics, post
-
-    def overshooting_kl(self, post, action, is_first):
-        """PlaNet's latent overshooting: from the posterior s_t0 at `overshoot_starts` random steps of each segment, the
-        prior rolls cfg.overshoot steps open loop with the recorded actions (reparameterised samples, as imagination
-        does), each step's KL[sg(q(z_{t0+k})) || p(z_{t0+k} | s_t0, a_{t0+1:t0+k})] -> (N, overshoot), N the rollouts
-        that cross no episode start. Eq. 2's KL trains the one-step prior only; imagination runs it for 15-500 steps."""
-        cfg, (B, T) = self.cfg, is_first.shape
-        H = cfg.overshoot  # below T: train.py refuses more
-        t0 = torch.randint(T - H, (B, cfg.overshoot_starts), device=action.device)  # (B, S)
-        row = torch.arange(B, device=action.device)[:, None].expand_as(t0)
-        episode = is_first.cumsum(1)  # (B, T): a segment's episode count up to t
-        whole = (episode[row, t0 + H] == episode[row, t0]).flatten()  # (B * S,): no episode starts inside the rollout
-        state = {k: post[k][row, t0].flatten(0, 1)[whole] for k in self.state_keys}  # (N, .)
-        ahead = (t0[..., None] + torch.arange(1, H + 1, device=t0.device)).flatten(0, 1)[whole]  # (N, H): t0 + k
-        rows = row.flatten()[whole][:, None]  # (N, 1)
-        actions = action[rows, ahead].unbind(1)  # H x (N, A), gathered once
-        targets = {key: post[key][rows, ahead].detach() for key in self.latent.stat_keys}  # (N, H, .)
-        kls = []
-        for k in range(H):
-            state = self.img_step(state, actions[k])
-            kls.append(self.latent.kl({key: v[:, k] for key, v in targets.items()}, state))
-        return torch.stack(kls, 1)

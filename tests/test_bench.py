@@ -27,11 +27,3 @@ def test_against_a_commit_measures_both_trees(capsys):
 def test_a_script_that_fails_names_its_tree():
     with pytest.raises(RuntimeError, match=r"bench.py in /: ValueError: no such run"):
         bench.in_tree("/", "raise ValueError('no such run')")
-
-
-def test_world_model_variants_are_timed_against_the_first(capsys):
-    small = dict(deter=16, hidden=16, units=16, batch=2, seq_len=6)
-    bench.bench_world_models((("base", small), ("categorical", dict(small, stoch=4, discrete=4)), ("overshoot", dict(small, overshoot=3))))
-    lines = capsys.readouterr().out.splitlines()
-    assert [line.split(":")[0] for line in lines] == ["world model    base", "world model    categorical", "world model    overshoot"]
-    assert lines[0].endswith(" 1.00x") and all(" ms per stage update, " in line for line in lines)

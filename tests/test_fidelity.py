@@ -1,5 +1,4 @@
-"""fidelity.py: the benchmark on a toy where the world model is exact (cosine 1, error 0, no KL), its table and PNG,
-and the world-model stage of train.py: Eq. 2 and 3 alone, fidelity rows at their updates, resumed bit for bit."""
+"""fidelity.py: the benchmark on a toy where the world model is exact (cosine 1, error 0, no KL), its table and PNG."""
 import numpy as np
 import pytest
 import torch
@@ -8,7 +7,6 @@ import configs
 import fidelity
 import goal_vae
 import world_model as W
-from tests.fixtures import train_args
 
 torch.set_num_threads(1)
 
@@ -66,39 +64,6 @@ def test_table_and_png(tmp_path):
     table = fidelity.markdown([row])
     assert "| toy | 7 | walk | 1.00 / 1.00 / - | 1.00 / 1.00 / - | 0.000 / 0.000 / - |" in table
     assert fidelity.plot([row], str(tmp_path / "f.png")).endswith("f.png") and (tmp_path / "f.png").stat().st_size > 1000
-
-
-def test_world_model_stage_trains_eq2_and_eq3_alone_and_resumes_bit_for_bit(smoke_data, tmp_path, monkeypatch):
-    import checkpoint
-    import evaluate
-    import rundir
-    import train
-
-    cfgs = lambda: train.resolve_configs(train_args(data=smoke_data, wm_steps=4, steps=4, checkpoint_every=2), "smoke")
-    whole = train.train(cfgs(), str(tmp_path / "whole"), resume=False)
-    metrics = rundir.read_jsonl(str(tmp_path / "whole" / "metrics.jsonl"))
-    assert "dist_loss" not in metrics[0] and "actor_loss" not in metrics[1] and "actor_loss" in metrics[-1]  # the stage, then phase 1
-    # killed in the stage after its checkpoint at update 2 (at update 4's log row), then resumed
-    open_loop, calls = evaluate.open_loop_metrics, []
-
-    def killed(*args):
-        calls.append(1)
-        if len(calls) == 2:
-            raise KeyboardInterrupt
-        return open_loop(*args)
-
-    monkeypatch.setattr(evaluate, "open_loop_metrics", killed)
-    part = str(tmp_path / "part")
-    with pytest.raises(KeyboardInterrupt):
-        train.train(cfgs(), part, resume=False)
-    monkeypatch.setattr(evaluate, "open_loop_metrics", open_loop)
-    train.train(cfgs(), part, resume=True)
-    a, b = checkpoint.load_run(whole)[1], checkpoint.load_run(part)[1]
-    assert all(torch.equal(x, y) for name in a for x, y in zip(a[name].state_dict().values(), b[name].state_dict().values()))
-    assert rundir.read_jsonl(str(tmp_path / "part" / "metrics.jsonl"))[-1]["wm_loss"] == metrics[-1]["wm_loss"]
-    # the stage may grow while the run is in it, not once it is past it
-    with pytest.raises(ValueError, match="past its world-model stage of 4 updates: pass --wm-steps 4"):
-        train.train(train.resolve_configs(train_args(data=smoke_data, wm_steps=6, steps=4), "smoke"), part, resume=True)
 
 
 def test_ranking_rows_on_a_smoke_agent(smoke_run, tmp_path):

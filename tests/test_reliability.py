@@ -162,7 +162,7 @@ def test_episodes_deleted_from_a_complete_collection_are_collected_again(smoke_d
     assert sorted(listed) == sorted(n for n in os.listdir(os.path.join(smoke_data, "walker")) if n.endswith(".npz"))
     for name in ("explore_0001.npz", "walk_0000.npz"):  # collection.json still says complete
         os.remove(os.path.join(data, "walker", name))
-    cfgs = train.resolve_configs(train_args(data=data, preset="smoke", steps=2, wm_steps=0, eval_steps=2), "smoke")
+    cfgs = train.resolve_configs(train_args(data=data, preset="smoke", steps=2, eval_steps=2), "smoke")
     checkpoint.prepare_data(cfgs)
     assert sorted(os.listdir(os.path.join(data, "walker"))) == sorted(os.listdir(os.path.join(smoke_data, "walker")))
 

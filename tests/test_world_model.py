@@ -8,9 +8,8 @@ from torch.distributions import Categorical, Independent, Normal, OneHotCategori
 
 import configs
 import evaluate
-import train
 import world_model as W
-from tests.fixtures import random_batch, train_args
+from tests.fixtures import random_batch
 
 torch.set_num_threads(1)
 
@@ -193,30 +192,3 @@ def test_a_few_updates_lower_the_loss_on_a_learnable_system(discrete, updates):
     assert after[0] < 0.8 * before[0], (before, after)  # Eq. 2's loss (floored by the free nats)
     assert after[1] < 0.3 * before[1], (before, after)  # reconstruction
     assert after[2] < 0.5 * before[2], (before, after)  # open-loop prediction
-
-
-def test_overshooting_kl_rolls_the_prior_open_loop_from_posterior_states():
-    """PlaNet's latent overshooting: its first step is Eq. 2's one-step KL at that step (the same prior from the same
-    posterior sample); rollouts that cross an episode start are dropped; Eq. 2's loss adds it where it is on."""
-    torch.manual_seed(0)
-    model, obs_shape = smoke_model(overshoot=3, overshoot_starts=2)
-    B, T = 4, 8
-    batch = random_batch("state", obs_shape, 2, B, T)
-    post, prior = model.observe(batch["state"], batch["action"], batch["is_first"])
-    kl = model.overshooting_kl(post, batch["action"], batch["is_first"])
-    assert kl.shape == (B * 2, 3) and (kl >= 0).all()
-    one_step = model.latent.kl({k: post[k] for k in model.latent.stat_keys}, prior)  # (B, T)
-    for n in range(B * 2):  # rollouts are row-major: segment n // 2
-        assert (one_step[n // 2, 1:] - kl[n, 0]).abs().min() < 1e-5
-    every_step = batch["is_first"].clone()
-    every_step[:, 1:] = True
-    assert model.overshooting_kl(post, batch["action"], every_step).shape == (0, 3)
-    _, metrics, _ = model.loss(batch)
-    assert metrics["kl_overshoot"] >= 0
-
-
-def test_overshooting_past_a_segment_is_refused_before_anything_runs(tmp_path):
-    cfgs = train.resolve_configs(train_args(data=str(tmp_path / "none"), **{"wm.overshoot": 8}), "smoke")
-    with pytest.raises(ValueError, match="--wm-overshoot 8 rolls past a segment: pass one below --wm-seq-len 8"):
-        train.train(cfgs, str(tmp_path / "run"), resume=False)
-    assert not (tmp_path / "none").exists()
