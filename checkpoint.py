@@ -235,6 +235,14 @@ def body_episodes(cfgs, keys):
     return collect.load_folder(folder, keys)
 
 
+def body_features(cfgs, stride):
+    """D_body's episodes as GIIL-retrieve reads them: their file names, video features every stride-th frame (N, T', D)
+    and last features (N, D)."""
+    episodes = body_episodes(cfgs, ("p",))
+    return ([os.path.basename(e["path"]) for e in episodes], np.stack([e["p"][::stride] for e in episodes]),
+            np.stack([e["p"][-1] for e in episodes]))
+
+
 def body_segments(cfgs):
     """D_body as collect.Segments (the run's data folder and segment length): what L_MG keeps training on."""
     wc = cfgs["wm"]

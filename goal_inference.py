@@ -9,6 +9,8 @@ GIIL-FT  from the first demo's zero-shot goal, g is optimised by L_GI (Eq. 5): i
          states and the demos (ot_reward.py), a value V_ot(s) trained on TD(lambda) targets of that reward,
          and the lambda-returns maximised through the dynamics with respect to g only. `seeds` seeds.
 GIIL-online  ours, after Sec. 6 (online.py): the goal chosen on real rollouts scored by the same OT reward.
+GIIL-retrieve  ours: the goal of the agent's own D_body episode whose recorded video matches the demos best by the same
+         OT reward: a candidate from the body's own experience, scored on a real trajectory (giil_retrieve).
 
 The goal searches (GIIL-FT, GIIL-online) share one interface, SEARCHES: a search is a function (cell, seed) -> goal,
 and its entry says how many seeds it runs and which settings its rows depend on (a row's identity, result_config).
@@ -46,6 +48,7 @@ from video_encoder import load_encoder
 CHOICES = {"preset": tuple(configs.PRESETS["imitate"])}
 FINETUNE_FIELDS = ("steps", "starts", "goal_lr", "critic_lr", "seeds")  # what GIIL-FT alone reads
 EVALUATION_FIELDS = ("eval_episodes", "eval_steps")  # what every row depends on
+RETRIEVE_STRIDE = 10  # ours: GIIL-retrieve compares episodes on every 10th frame (50 of 500 steps), OT's cost / 100
 
 
 def goal_inference_loss(models, critic_ot, slow_ot, goal, start, demo_p, cfgs, ot_cfg, offsets=None):  # Eq. 5
@@ -111,6 +114,7 @@ class Cell:
     demos: list  # the folder's episodes (collect.load_folder): "p" (T + 1, D) video features, "pixels"
     goals: list  # GIIL-ZS's goals q(s | p_T), one (F,) per demo
     device: str
+    body: Callable  # () -> D_body's episode names, their features every RETRIEVE_STRIDE-th frame (N, T', D), last features (N, D)
 
 
 def giil_ft(cell, seed):
@@ -131,6 +135,19 @@ def giil_online(cell, seed):
     return goal, k, {"env_steps": len(log) * ic.eval_steps, "ot_log": [[i, s, round(score, 4)] for i, s, score in log], "chosen_demo": k}
 
 
+def giil_retrieve(cell, seed):
+    """ours: the goal of the agent's own D_body episode that matches the demos best, q(s | p_T) of its last frame. Each
+    episode's real trajectory is scored against the demos by App. C's OT reward (whole episode against each demo, the
+    best demo counting: GIIL-online's score of a real rollout) on every RETRIEVE_STRIDE-th frame: candidates from the
+    body's own experience, ranked with no imagination and no episode run; one goal, evaluated on every seed's starts."""
+    names, body_p, body_last = cell.body()
+    score = online.ot_score(body_p, np.stack([d["p"][::RETRIEVE_STRIDE] for d in cell.demos]), cell.ot_cfg)  # (N,)
+    best = int(np.argmax(score))
+    with torch.no_grad():
+        goal = cell.models["goal_vae"].goal(torch.as_tensor(body_last[best], device=cell.device))
+    return goal, 0, {"retrieved": names[best], "retrieved_ot": round(float(score[best]), 4)}
+
+
 @dataclasses.dataclass(frozen=True)
 class GoalSearch:
     search: Callable  # (cell, seed) -> (g (F,), the demo shown beside its video, more fields of its row)
@@ -143,6 +160,10 @@ def finetune_config(ic, oc):
     return {k: v for k, v in dataclasses.asdict(ic).items() if k not in ("seeds", "video")}
 
 
+def retrieve_config(ic, oc):
+    return {**{k: getattr(ic, k) for k in EVALUATION_FIELDS}, "preset": ic.preset, "stride": RETRIEVE_STRIDE}
+
+
 def online_config(ic, oc):  # as a row stores it: JSON has no tuples (the schedule reads back as lists)
     fields = {**{k: getattr(ic, k) for k in EVALUATION_FIELDS}, **{k: v for k, v in dataclasses.asdict(oc).items() if k != "seeds"}}
     return json.loads(json.dumps(fields))
@@ -151,6 +172,7 @@ def online_config(ic, oc):  # as a row stores it: JSON has no tuples (the schedu
 SEARCHES = {
     "GIIL-FT": GoalSearch(giil_ft, lambda ic, oc: ic.seeds, finetune_config, "finetune"),
     "GIIL-online": GoalSearch(giil_online, lambda ic, oc: oc.seeds, online_config, "online"),
+    "GIIL-retrieve": GoalSearch(giil_retrieve, lambda ic, oc: ic.seeds, retrieve_config, "retrieve"),
 }
 ZERO_SHOT = ("GIIL-ZS", "GIIL-ZS (demo 0)")
 METHODS = ZERO_SHOT + tuple(SEARCHES)  # a cell's columns, in the tables' order

@@ -1,7 +1,7 @@
 """Phase 2 on one demo folder (Eq. 1, upper level): GIIL-ZS on each demo, and the goal searches flagged (GIIL-FT,
-GIIL-online); the method is goal_inference.py, its harness runner.py, every cell of the tables tables.py.
+GIIL-online, GIIL-retrieve); the method is goal_inference.py, its harness runner.py, every cell of the tables tables.py.
 
-    python imitate.py --demo stickman_run [--view side|diagonal] [--run runs/<name> | --env walker|stickman] [--preset P] [--finetune] [--online]
+    python imitate.py --demo stickman_run [--view side|diagonal] [--run runs/<name> | --env walker|stickman] [--preset P] [--finetune] [--online] [--retrieve]
 """
 import argparse
 
@@ -21,7 +21,7 @@ def main():
     parser.add_argument("--run", help="the phase-1 run (train.py) whose agent imitates (default: the --env agent's run of this --preset, "
                         "runs/<env>_<obs>_<preset>_s0, or else the shipped agents/<env>)")
     parser.add_argument("--env", choices=envs.BODIES, help="the agent's body, to pick the default --run (default walker); with --run, checked against its agent")
-    for method, s in SEARCHES.items():  # --finetune, --online
+    for method, s in SEARCHES.items():  # --finetune, --online, --retrieve
         parser.add_argument("--" + s.flag, action="store_true", help=f"also {method}: {s.search.__doc__}")
     rundir.threads_flag(parser)
     config_flags(parser)

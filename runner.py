@@ -7,6 +7,7 @@ collected first (collect.py).
 """
 import contextlib
 import dataclasses
+import functools
 import hashlib
 import json
 import os
@@ -110,7 +111,8 @@ def imitate(run_dir, demo, view, ic, searches=(), oc=None, zero_shot=True, done=
     for k, goal in enumerate(tqdm(goals if zero_shot else [], desc=f"GIIL-ZS {demo} {view}")):
         if ("GIIL-ZS", k) not in done:
             evaluate_goal("GIIL-ZS", k, goal, k, time.time())  # each row its own time: a table's cost is the sum
-    cell = goal_inference.Cell(models, cfgs, ic, oc, configs.OTConfig(**configs.PRESETS["ot"][ic.preset]), task, demos, goals, device)
+    cell = goal_inference.Cell(models, cfgs, ic, oc, configs.OTConfig(**configs.PRESETS["ot"][ic.preset]), task, demos, goals, device,
+                               functools.cache(lambda: checkpoint.body_features(cfgs, goal_inference.RETRIEVE_STRIDE)))
     for method in searches:
         for seed in range(goal_inference.SEARCHES[method].seeds(ic, oc)):  # each seed independent of the others: its own RNG seeds
             if ("GIIL-ZS (demo 0)", seed) not in done:

@@ -1,6 +1,6 @@
 """Tables 1-2 and 4-11 of the paper for one agent: every setting (SE/CE x SV/CV) x task, GIIL-ZS and the goal searches
-(goal_inference.SEARCHES: GIIL-FT, GIIL-online), and with `--methods` the baselines GenRL and AIME-NoB, ours beside the
-paper's. The table harness: it runs the cells missing from runs/<name>/results.jsonl (sharded over processes, a lock
+(goal_inference.SEARCHES: GIIL-FT, GIIL-online, GIIL-retrieve), and with `--methods` the baselines GenRL and AIME-NoB,
+ours beside the paper's. The table harness: it runs the cells missing from runs/<name>/results.jsonl (sharded over processes, a lock
 per cell, resumed from the rows), and writes their markdown to runs/<name>/tables.md:
 
     python tables.py --run runs/<name> [--methods finetune,online,genrl,aime-nob] [--settings SE-SV,CE-CV] [--shard I/N]
@@ -297,7 +297,7 @@ def main():
                       "(runs/<env>_<obs>_<preset>_s0, or else the shipped agents/<env>)")
     mode.add_argument("--table", nargs="+", metavar="ROWS", help="results.jsonl files of one agent: its tables")
     mode.add_argument("--curves", nargs="+", metavar="ROWS", help="results.jsonl files of one agent: score against compute")
-    parser.add_argument("--methods", help="with --run: comma-separated, of finetune (GIIL-FT; the default), online (GIIL-online), genrl, "
+    parser.add_argument("--methods", help="with --run: comma-separated, of finetune (GIIL-FT; the default), online (GIIL-online), retrieve (GIIL-retrieve), genrl, "
                         "aime-nob (the baselines, baselines/genrl.py and baselines/aime_nob.py with their --preset); GIIL-ZS comes with any goal search")
     parser.add_argument("--settings", help="with --run: the settings to run now (default all); with --curves: the settings averaged "
                         "(default the same-body ones), comma-separated")

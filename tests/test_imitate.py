@@ -214,3 +214,32 @@ def test_parallel_shards_collect_demos_one_at_a_time(tmp_path, monkeypatch):
     for shard in shards:
         shard.join()
     assert overlaps == [1, 1]
+
+
+def test_retrieve_takes_the_goal_of_the_body_episode_closest_to_the_demos():
+    """GIIL-retrieve on a toy D_body of 4 episodes, one of them a noisy copy of a demo: its last frame's goal is the one
+    returned, whatever the order; the goal encoder is a stub (g = 2 p)."""
+    rng = np.random.default_rng(0)
+    unit = lambda x: x / np.linalg.norm(x, axis=-1, keepdims=True)
+    demos = [{"p": unit(rng.normal(size=(41, 8))).astype(np.float32)} for _ in range(2)]
+    body = unit(rng.normal(size=(4, 41, 8))).astype(np.float32)
+    body[2] = unit(demos[1]["p"] + 0.1 * rng.normal(size=(41, 8))).astype(np.float32)
+    stride = goal_inference.RETRIEVE_STRIDE
+    names = [f"e{i}.npz" for i in range(4)]
+    vae = type("Stub", (), {"goal": staticmethod(lambda p: 2 * p)})()
+    cell = goal_inference.Cell({"goal_vae": vae}, None, SMOKE, None, configs.OTConfig(), "run", demos, [], "cpu",
+                               lambda: (names, body[:, ::stride], body[:, -1]))
+    goal, k, extra = goal_inference.giil_retrieve(cell, seed=0)
+    assert extra["retrieved"] == "e2.npz" and torch.allclose(goal, 2 * torch.as_tensor(body[2, -1]))
+    order = [3, 2, 0, 1]
+    cell = dataclasses.replace(cell, body=lambda: ([names[i] for i in order], body[order, ::stride], body[order, -1]))
+    assert goal_inference.giil_retrieve(cell, seed=1)[2]["retrieved"] == "e2.npz"
+
+
+def test_retrieve_end_to_end_names_a_d_body_episode(smoke_run):
+    rows = runner.imitate(smoke_run, "stickman_walk", "side", SMOKE, ["GIIL-retrieve"], zero_shot=False)
+    found = [r for r in rows if r["method"] == "GIIL-retrieve"]
+    cfgs = checkpoint.load_run(smoke_run)[0]
+    assert len(found) == SMOKE.seeds and len({r["retrieved"] for r in found}) == 1  # one goal, every seed's starts
+    assert os.path.exists(os.path.join(cfgs["train"].data, "walker", found[0]["retrieved"]))
+    assert found[0]["config"] == {"eval_episodes": SMOKE.eval_episodes, "eval_steps": SMOKE.eval_steps, "preset": SMOKE.preset, "stride": 10}
