@@ -1,7 +1,7 @@
 """Tables 1-2 and 4-11 of the paper for one agent: every setting (SE/CE x SV/CV) x task, GIIL-ZS and the goal searches
 (goal_inference.SEARCHES: GIIL-FT, GIIL-online, GIIL-retrieve), and with `--methods` the baselines GenRL and AIME-NoB,
-ours beside the paper's. The table harness: it runs the cells missing from runs/<name>/results.jsonl (sharded over processes, a lock
-per cell, resumed from the rows), and writes their markdown to runs/<name>/tables.md:
+ours beside the paper's. The table harness: it runs the cells missing from runs/<name>/results.jsonl (sharded over
+processes, a lock per cell, resumed from the rows), and writes their markdown to runs/<name>/tables.md:
 
     python tables.py --run runs/<name> [--methods finetune,online,genrl,aime-nob] [--settings SE-SV,CE-CV] [--shard I/N]
 
