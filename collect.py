@@ -358,14 +358,11 @@ def main():
                         "each expert's learning history on (default: the preset's)")
     args = parser.parse_args()
     cfg, args.data = preset_config(args.preset), args.data or DATA[args.preset]
-    if args.task_episodes is not None:
-        if args.task_episodes < 1:
-            parser.error(f"--task-episodes {args.task_episodes}: pass at least 1")
-        cfg = replace(cfg, task_episodes=args.task_episodes)
-    if args.history_from is not None:
-        if not 0 <= args.history_from <= 1:
-            parser.error(f"--history-from {args.history_from}: pass a fraction in [0, 1]")
-        cfg = replace(cfg, history_from=args.history_from)
+    cfg = replace(cfg, **{k: v for k, v in (("task_episodes", args.task_episodes), ("history_from", args.history_from)) if v is not None})
+    try:
+        rundir.check_flags(cfg)  # CollectConfig's ranges, as every command's config
+    except ValueError as error:
+        parser.error(str(error))
     if not args.env and (args.task_episodes is not None or args.history_from is not None):
         parser.error("--task-episodes and --history-from shape D_body: add --env BODY, or drop them")
     if not (args.env or args.demos or args.features):

@@ -151,7 +151,7 @@ COMPONENTS = {
 
 @dataclasses.dataclass
 class CollectConfig:
-    ranges: ClassVar[dict] = {"seed": (0, None)}
+    ranges: ClassVar[dict] = {"seed": (0, None), "history_from": (0, 1)}
     explore_episodes: int = 80  # D_body exploration episodes (ours; the paper: ~2000)
     # D_body episodes per task in envs.BODY_TASKS (ours: each doubling from 40 raised goal reaching, docs/ablations.md,
     # Phase 1; the paper: 1000, which makes exploration : task episodes 2 : 3 there, 1 : 6 here)

@@ -152,7 +152,10 @@ def test_task_episodes_flag_grows_d_body_and_keeps_what_exists(data, tmp_path):
     run = lambda n: subprocess.run([sys.executable, script, "--env", "walker", "--preset", "smoke", "--data", root, "--workers", "1",
                                     "--task-episodes", str(n)], capture_output=True, text=True)
     out = run(0)
-    assert out.returncode == 2 and out.stderr.strip().endswith("--task-episodes 0: pass at least 1")
+    assert out.returncode == 2 and out.stderr.strip().endswith("--task-episodes 0: must be >= 1")
+    out = subprocess.run([sys.executable, script, "--env", "walker", "--preset", "smoke", "--data", root, "--history-from", "1.5"],
+                         capture_output=True, text=True)
+    assert out.returncode == 2 and out.stderr.strip().endswith("--history-from 1.5: must be in [0, 1]")
     out = run(2)
     assert out.returncode == 0, out.stderr[-2000:]
     names = sorted(n for n in os.listdir(folder) if n.endswith(".npz"))
