@@ -346,7 +346,6 @@ def main():
     if not args.run:
         parser.error("pass a run folder (e.g. agents/walker) or --table JSONL ...")
     torch.set_num_threads(1)
-    rundir.not_training(args.run)  # a checkpoint mid-training is not the run's world model
     cfgs, models, ckpt = checkpoint.load_run(args.run)
     kind = "ranking" if args.ranking else "distance" if args.distance else "fidelity"
     out = args.out or os.path.join(checkpoint.work_folder(args.run), f"{kind}.jsonl")  # committed rows only when --out names them

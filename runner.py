@@ -63,8 +63,7 @@ def imitate(run_dir, demo, view, ic, searches=(), oc=None, zero_shot=True, done=
     if "GIIL-online" in searches:
         check_online_seeds(ic, oc)
     device = "cuda" if torch.cuda.is_available() else "cpu"
-    rundir.not_training(run_dir)
-    cfgs, models, ckpt = checkpoint.load_run(run_dir, device)
+    cfgs, models, ckpt = checkpoint.load_run(run_dir, device)  # a run in training refused (rundir.run_checkpoint)
     tc, weights = cfgs["train"], rundir.weights_id(ckpt)
     rundir.fast_matmul()  # oneDNN where it is faster and still fp32 (rundir.py)
     folder = checkpoint.demo_folder(cfgs, demo, view)

@@ -225,8 +225,7 @@ def run_table(run_dir, ic, oc=None, settings=SETTINGS, shard=(0, 1), methods=("f
     oc = oc or OnlineConfig(**PRESETS["online"][ic.preset])
     rundir.check_flags(ic)
     baselines = baseline_configs(ic.preset, budgets)  # their finished cells are shown whichever methods run now
-    rundir.not_training(run_dir)
-    cfgs, _, ckpt = checkpoint.load_run(run_dir)
+    cfgs, _, ckpt = checkpoint.load_run(run_dir)  # a run in training refused (rundir.run_checkpoint)
     agent, shown, weights = cfgs["train"].env, [], rundir.weights_id(ckpt)
     configs = {**{m: runner.result_config(ic, m, oc) for m in goal_inference.METHODS}, **{m: b[2] for m, b in baselines.items()}}
     searches = [m for m, s in goal_inference.SEARCHES.items() if s.flag in methods]

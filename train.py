@@ -221,7 +221,6 @@ def main():
     if args.export:
         print("wrote", checkpoint.export_agent(run_dir, args.export, args.force))
     elif args.evaluate:
-        rundir.not_training(run_dir)  # a checkpoint mid-training is not the agent, and its folder has one writer
         device = "cuda" if torch.cuda.is_available() else "cpu"
         run_cfgs, models, _ = load_run(run_dir, device, getattr(args, "train.env"))
         run_dir = checkpoint.work_folder(run_dir)

@@ -173,8 +173,7 @@ def load_cell(run_dir, demo, view, data=None):
     """A phase-1 run and one demo folder (data/demos/<demo>_<view>): configs, models, the demos' features, task and
     setting. data: the data folder, default the run's."""
     device = "cuda" if torch.cuda.is_available() else "cpu"
-    rundir.not_training(run_dir)
-    cfgs, models, ckpt = checkpoint.load_run(run_dir, device)
+    cfgs, models, ckpt = checkpoint.load_run(run_dir, device)  # a run in training refused (rundir.run_checkpoint)
     if data is not None:
         cfgs["train"] = dataclasses.replace(cfgs["train"], data=data)
     tc = cfgs["train"]
