@@ -207,6 +207,18 @@ def test_scorers_rank_the_demo_first_and_the_table_reads_held_out_ranks():
     assert lines[4].startswith("| walker | side | 1 | true score (ceiling) | +1.00")
 
 
+def test_retrieval_scorers_rank_a_noisy_copy_of_a_demo_first():
+    """probes/retrieval.py: among body episodes of random features, a noisy copy of one demo is the best match under
+    every scorer."""
+    retrieval = probe_script("retrieval")
+    rng = np.random.default_rng(0)
+    demo = rng.standard_normal((2, 12, 16)).astype(np.float32)
+    body = rng.standard_normal((5, 12, 16)).astype(np.float32)
+    body[3] = demo[1] + 0.1 * rng.standard_normal((12, 16))
+    for name, scorer in retrieval.SCORERS.items():
+        assert int(np.argmax(scorer(body, body[:, -1], demo, demo[:, -1]))) == 3, name
+
+
 def test_goal_variance_splits_goal_from_episode_noise():
     """Goals that differ only by their episodes' noise have no goal variance; a fixed offset per goal is all goal."""
     goal_variance = probe_script("goal_variance")
