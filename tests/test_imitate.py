@@ -136,7 +136,7 @@ def test_command_line(smoke_run, tmp_path):
     import sys
 
     run = str(tmp_path / "run")
-    shutil.copytree(smoke_run, run)
+    shutil.copytree(smoke_run, run, ignore=shutil.ignore_patterns("results.jsonl"))  # whatever other tests ran on the shared run
     cwd = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
     out = subprocess.run([sys.executable, "imitate.py", "--demo", "walker_stand", "--finetune", "--preset", "smoke", "--run", run],
                          cwd=cwd, capture_output=True, text=True)
@@ -236,10 +236,12 @@ def test_retrieve_takes_the_goal_of_the_body_episode_closest_to_the_demos():
     assert goal_inference.giil_retrieve(cell, seed=1)[2]["retrieved"] == "e2.npz"
 
 
-def test_retrieve_end_to_end_names_a_d_body_episode(smoke_run):
-    rows = runner.imitate(smoke_run, "stickman_walk", "side", SMOKE, ["GIIL-retrieve"], zero_shot=False)
+def test_retrieve_end_to_end_names_a_d_body_episode(smoke_run, tmp_path):
+    run = str(tmp_path / "run")  # a copy: the shared smoke run's rows stay as the other tests expect them
+    shutil.copytree(smoke_run, run, ignore=shutil.ignore_patterns("results.jsonl", "imitate"))
+    rows = runner.imitate(run, "stickman_walk", "side", SMOKE, ["GIIL-retrieve"], zero_shot=False)
     found = [r for r in rows if r["method"] == "GIIL-retrieve"]
-    cfgs = checkpoint.load_run(smoke_run)[0]
+    cfgs = checkpoint.load_run(run)[0]
     assert len(found) == SMOKE.seeds and len({r["retrieved"] for r in found}) == 1  # one goal, every seed's starts
     assert os.path.exists(os.path.join(cfgs["train"].data, "walker", found[0]["retrieved"]))
     assert found[0]["config"] == {"eval_episodes": SMOKE.eval_episodes, "eval_steps": SMOKE.eval_steps, "preset": SMOKE.preset, "stride": 10}

@@ -11,7 +11,6 @@ import checkpoint
 import configs
 import envs
 import fidelity
-import goal_inference
 import online
 import rundir
 import runner
@@ -61,7 +60,7 @@ def test_refinement_never_reads_the_task_reward(smoke_run):
     demo_p = np.random.default_rng(0).standard_normal((2, 11, models["goal_vae"].feat_dim)).astype(np.float32)
     encoder = video_encoder.load_encoder("default")
     cfg = configs.OnlineConfig(schedule=((3, 1), (2, 1)))
-    ot_cfg = goal_inference.configs.OTConfig(iters=5)
+    ot_cfg = configs.OTConfig(iters=5)
     rng = np.random.default_rng(0)
     plain = online.refine_goal(models, cfgs, lambda: envs.make_env("walker", "run"), goals, demo_p, cfg, 0, encoder, 10, ot_cfg)
     poisoned = online.refine_goal(models, cfgs, lambda: NoRewardEnv(envs.make_env("walker", "run"), rng), goals, demo_p, cfg, 0, encoder, 10, ot_cfg)

@@ -9,7 +9,6 @@ import sys
 import numpy as np
 
 import configs
-import goal_inference
 import runner
 import tables
 
@@ -58,7 +57,7 @@ def test_table_keeps_finished_cells(smoke_run, tmp_path):
 
 def test_the_zero_shot_columns_depend_on_the_evaluation_alone():
     """A GIIL-ZS row's config is the evaluation's (episodes and steps); GIIL-FT's adds the finetuning's, not the seeds."""
-    oc = goal_inference.configs.OnlineConfig()
+    oc = configs.OnlineConfig()
     assert runner.result_config(SMOKE, "GIIL-ZS", oc) == {"eval_episodes": SMOKE.eval_episodes, "eval_steps": SMOKE.eval_steps}
     assert "seeds" not in runner.result_config(SMOKE, "GIIL-FT", oc) and runner.result_config(SMOKE, "GIIL-FT", oc)["goal_lr"] == SMOKE.goal_lr
 
@@ -120,7 +119,7 @@ def test_baselines_join_the_table_as_columns_and_are_not_rerun(smoke_run, tmp_pa
     tables.run_table(run, smoke, methods=("finetune",), **one_cell)
     assert {r["method"] for r in runner.load_results(run)[len(rows):]} == {"GIIL-ZS", "GIIL-ZS (demo 0)", "GIIL-FT"}
     assert "| GenRL (ours) | AIME-NoB (ours) |" in open(os.path.join(run, "tables.md")).read()  # the baselines' cells stay
-    with pytest.raises(ValueError, match="--methods dreamer: choose from finetune, online, genrl, aime-nob"):
+    with pytest.raises(ValueError, match="--methods dreamer: choose from finetune, online, retrieve, genrl, aime-nob"):
         tables.run_table(run, SMOKE, methods=("finetune", "dreamer"))
     # --budgets: GenRL's column at 2 updates, its 3-update rows (the preset's) no longer shown, then run again at 2
     genrl_rows = len([r for r in runner.load_results(run) if r["method"] == "GenRL"])
