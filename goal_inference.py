@@ -115,6 +115,7 @@ class Cell:
     goals: list  # GIIL-ZS's goals q(s | p_T), one (F,) per demo
     device: str
     body: Callable  # () -> D_body's episode names, their features every RETRIEVE_STRIDE-th frame (N, T', D), last features (N, D)
+    memo: dict = dataclasses.field(default_factory=dict, init=False)  # what a search computes once per cell, not per seed
 
 
 def giil_ft(cell, seed):
@@ -140,12 +141,15 @@ def giil_retrieve(cell, seed):
     episode's real trajectory is scored against the demos by App. C's OT reward (whole episode against each demo, the
     best demo counting: GIIL-online's score of a real rollout) on every RETRIEVE_STRIDE-th frame: candidates from the
     body's own experience, ranked with no imagination and no episode run; one goal, evaluated on every seed's starts."""
-    names, body_p, body_last = cell.body()
-    score = online.ot_score(body_p, np.stack([d["p"][::RETRIEVE_STRIDE] for d in cell.demos]), cell.ot_cfg)  # (N,)
-    best = int(np.argmax(score))
-    with torch.no_grad():
-        goal = cell.models["goal_vae"].goal(torch.as_tensor(body_last[best], device=cell.device))
-    return goal, 0, {"retrieved": names[best], "retrieved_ot": round(float(score[best]), 4)}
+    if "retrieve" not in cell.memo:  # the seeds differ in their evaluation's starts only: the search runs once a cell
+        names, body_p, body_last = cell.body()
+        score = online.ot_score(body_p, np.stack([d["p"][::RETRIEVE_STRIDE] for d in cell.demos]), cell.ot_cfg)  # (N,)
+        best = int(np.argmax(score))
+        with torch.no_grad():
+            goal = cell.models["goal_vae"].goal(torch.as_tensor(body_last[best], device=cell.device))
+        cell.memo["retrieve"] = goal, {"retrieved": names[best], "retrieved_ot": round(float(score[best]), 4)}
+    goal, extra = cell.memo["retrieve"]
+    return goal, 0, dict(extra)
 
 
 @dataclasses.dataclass(frozen=True)

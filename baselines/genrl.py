@@ -330,9 +330,10 @@ def run_cells(parser, run_cell, method, cls, presets):
     agent = checkpoint.load_run(args.run)[0]["train"].env
     for task, where in [c for c in envs.cells(agent) if c[1] in settings][shard[0]::shard[1]]:
         demo, view = envs.demo_of(agent, task, where)
-        with rundir.claim(runner.cell_lock(args.run, demo, view)) as other:
+        lock = runner.cell_lock(args.run, demo, view)
+        with rundir.claim(lock) as other:
             if other:
-                print(f"{demo} ({view} view): process {other} is running this cell now ({runner.cell_lock(args.run, demo, view)}): {method} skipped here")
+                print(f"{demo} ({view} view): process {other} is running this cell now ({lock}): {method} skipped here")
             else:
                 run_cell(args.run, demo, view, cfg, args.data)
 
