@@ -350,4 +350,21 @@ def test_eq4_probe_trains_a_fresh_actor_and_leaves_the_world_model_frozen(smoke_
     assert set(row["scores"]) == {"stand", "walk", "run"} and np.isfinite(row["gap"])
     assert open(os.path.join(smoke_run, "checkpoint.pt"), "rb").read() == before
     summary = subprocess.run([sys.executable, "probes/eq4_probe.py", "--summary", out], cwd=ROOT, capture_output=True, text=True)
-    assert f"| {smoke_run} | td | 3 | 16 | yes | 2 | 1 | {row['average']:.1f} | {row['gap']:.3f} |" in summary.stdout
+    assert f"| {smoke_run} | fresh | td | 3 | 16 | yes | 2 | 1 | {row['average']:.1f} | - | {row['gap']:.3f} |" in summary.stdout
+
+
+def test_eq4_probe_from_the_clone_without_updates_scores_the_runs_own_benchmark(smoke_run, tmp_path):
+    """--from-clone keeps the run's actor: with 0 updates its benchmark on the run's own settings is the run's own,
+    episode for episode (the pairing --summary reads); the cloning's weight anneals linearly from FIRST to LAST."""
+    probe = probe_script("eq4_probe")
+    assert [probe.bc_weight((1.0, 0.1), k, 4) for k in range(4)] == pytest.approx([1.0, 0.7, 0.4, 0.1])
+    assert probe.bc_weight(None, 3, 4) == 0.0
+    out = str(tmp_path / "rows.jsonl")
+    result = subprocess.run([sys.executable, "probes/eq4_probe.py", smoke_run, "--from-clone", "--bc-anneal", "1", "0.1", "--updates", "0",
+                             "--episodes", "1", "--eval-steps", "10", "--out", out],
+                            cwd=ROOT, capture_output=True, text=True, env={**os.environ, "MUJOCO_GL": "egl"})
+    assert result.returncode == 0, result.stderr[-2000:]
+    row = json.loads(open(out).read())
+    assert row["from_clone"] and row["bc_anneal"] == [1.0, 0.1] and row["average"] == pytest.approx(row["start_average"], abs=1e-9)
+    summary = subprocess.run([sys.executable, "probes/eq4_probe.py", "--summary", out], cwd=ROOT, capture_output=True, text=True)
+    assert f"| {smoke_run} | clone, bc 1 -> 0.1 | run | " in summary.stdout and "| 0.0 |" in summary.stdout
