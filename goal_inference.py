@@ -9,8 +9,9 @@ GIIL-FT  from the first demo's zero-shot goal, g is optimised by L_GI (Eq. 5): i
          states and the demos (ot_reward.py), a value V_ot(s) trained on TD(lambda) targets of that reward,
          and the lambda-returns maximised through the dynamics with respect to g only. `seeds` seeds.
 GIIL-online  ours, after Sec. 6 (online.py): the goal chosen on real rollouts scored by the same OT reward.
-GIIL-retrieve  ours: the goal of the agent's own D_body episode whose recorded video matches the demos best by the same
-         OT reward: a candidate from the body's own experience, scored on a real trajectory (giil_retrieve).
+GIIL-retrieve  ours: demo 0's zero-shot goal where the body's own experience holds it; where it lies outside every final
+         goal of D_body, the goal of the agent's own D_body episode whose recorded video matches the demos best by the
+         same OT reward: a candidate from the body's own experience, scored on a real trajectory (giil_retrieve).
 
 The goal searches (GIIL-FT, GIIL-online) share one interface, SEARCHES: a search is a function (cell, seed) -> goal,
 and its entry says how many seeds it runs and which settings its rows depend on (a row's identity, result_config).
@@ -136,18 +137,32 @@ def giil_online(cell, seed):
     return goal, k, {"env_steps": len(log) * ic.eval_steps, "ot_log": [[i, s, round(score, 4)] for i, s, score in log], "chosen_demo": k}
 
 
+def support(goal, final_goals):
+    """ours, GIIL-retrieve's acceptance test: (the distance from goal (F,) to the nearest of D_body's final goals
+    (N, F), the support's radius: the largest distance of one of those final goals to its nearest other one). A goal
+    farther out than the radius lies outside every goal the hindsight clone learnt to end an episode in."""
+    apart = torch.cdist(final_goals, final_goals).fill_diagonal_(float("inf"))
+    return torch.cdist(goal[None], final_goals).min().item(), apart.min(1).values.max().item()
+
+
 def giil_retrieve(cell, seed):
-    """ours: the goal of the agent's own D_body episode that matches the demos best, q(s | p_T) of its last frame. Each
+    """ours: demo 0's zero-shot goal where it lies inside the support of D_body's final goals (support); outside it,
+    the goal of the agent's own D_body episode that matches the demos best, q(s | p_T) of its last frame. Each
     episode's real trajectory is scored against the demos by App. C's OT reward (whole episode against each demo, the
     best demo counting: GIIL-online's score of a real rollout) on every RETRIEVE_STRIDE-th frame: candidates from the
     body's own experience, ranked with no imagination and no episode run; one goal, evaluated on every seed's starts."""
     if "retrieve" not in cell.memo:  # the seeds differ in their evaluation's starts only: the search runs once a cell
         names, body_p, body_last = cell.body()
-        score = online.ot_score(body_p, np.stack([d["p"][::RETRIEVE_STRIDE] for d in cell.demos]), cell.ot_cfg)  # (N,)
-        best = int(np.argmax(score))
         with torch.no_grad():
-            goal = cell.models["goal_vae"].goal(torch.as_tensor(body_last[best], device=cell.device))
-        cell.memo["retrieve"] = goal, {"retrieved": names[best], "retrieved_ot": round(float(score[best]), 4)}
+            final_goals = cell.models["goal_vae"].goal(torch.as_tensor(body_last, device=cell.device))
+        distance, radius = support(cell.goals[0], final_goals)
+        extra = {"support_distance": round(distance, 3), "support_radius": round(radius, 3)}
+        if distance <= radius:  # the demo's own goal is one the body's experience holds: kept
+            cell.memo["retrieve"] = cell.goals[0], {"retrieved": None, **extra}
+        else:
+            score = online.ot_score(body_p, np.stack([d["p"][::RETRIEVE_STRIDE] for d in cell.demos]), cell.ot_cfg)  # (N,)
+            best = int(np.argmax(score))
+            cell.memo["retrieve"] = final_goals[best], {"retrieved": names[best], "retrieved_ot": round(float(score[best]), 4), **extra}
     goal, extra = cell.memo["retrieve"]
     return goal, 0, dict(extra)
 
@@ -165,7 +180,7 @@ def finetune_config(ic, oc):
 
 
 def retrieve_config(ic, oc):
-    return {**{k: getattr(ic, k) for k in EVALUATION_FIELDS}, "preset": ic.preset, "stride": RETRIEVE_STRIDE}
+    return {**{k: getattr(ic, k) for k in EVALUATION_FIELDS}, "preset": ic.preset, "stride": RETRIEVE_STRIDE, "accept": "support"}
 
 
 def online_config(ic, oc):  # as a row stores it: JSON has no tuples (the schedule reads back as lists)

@@ -217,8 +217,9 @@ def test_parallel_shards_collect_demos_one_at_a_time(tmp_path, monkeypatch):
 
 
 def test_retrieve_takes_the_goal_of_the_body_episode_closest_to_the_demos():
-    """GIIL-retrieve on a toy D_body of 4 episodes, one of them a noisy copy of a demo: its last frame's goal is the one
-    returned, whatever the order; the goal encoder is a stub (g = 2 p)."""
+    """GIIL-retrieve on a toy D_body of 4 episodes, one of them a noisy copy of a demo: with a zero-shot goal outside
+    the support of D_body's final goals, the goal of that episode's last frame is returned, whatever the order; the goal
+    encoder is a stub (g = 2 p)."""
     rng = np.random.default_rng(0)
     unit = lambda x: x / np.linalg.norm(x, axis=-1, keepdims=True)
     demos = [{"p": unit(rng.normal(size=(41, 8))).astype(np.float32)} for _ in range(2)]
@@ -227,13 +228,30 @@ def test_retrieve_takes_the_goal_of_the_body_episode_closest_to_the_demos():
     stride = goal_inference.RETRIEVE_STRIDE
     names = [f"e{i}.npz" for i in range(4)]
     vae = type("Stub", (), {"goal": staticmethod(lambda p: 2 * p)})()
-    cell = goal_inference.Cell({"goal_vae": vae}, None, SMOKE, None, configs.OTConfig(), "run", demos, [], "cpu",
+    far = torch.full((8,), 10.0)  # beyond every final goal (norm 2)
+    cell = goal_inference.Cell({"goal_vae": vae}, None, SMOKE, None, configs.OTConfig(), "run", demos, [far], "cpu",
                                lambda: (names, body[:, ::stride], body[:, -1]))
     goal, k, extra = goal_inference.giil_retrieve(cell, seed=0)
     assert extra["retrieved"] == "e2.npz" and torch.allclose(goal, 2 * torch.as_tensor(body[2, -1]))
     order = [3, 2, 0, 1]
     cell = dataclasses.replace(cell, body=lambda: ([names[i] for i in order], body[order, ::stride], body[order, -1]))
     assert goal_inference.giil_retrieve(cell, seed=1)[2]["retrieved"] == "e2.npz"
+
+
+def test_retrieve_keeps_a_zero_shot_goal_the_body_holds():
+    """The acceptance test: a zero-shot goal next to one of D_body's final goals is kept (nothing retrieved); the
+    support's radius is the largest distance of a final goal to its nearest other one (here 3: points 0, 1, 4)."""
+    final = torch.tensor([[0.0], [1.0], [4.0]])
+    assert goal_inference.support(torch.tensor([4.5]), final) == (0.5, 3.0)
+    assert goal_inference.support(torch.tensor([-3.5]), final) == (3.5, 3.0)
+    body = np.zeros((3, 11, 1), np.float32)
+    body[:, -1, 0] = [0.0, 0.5, 2.0]  # the stub encoder doubles them: the final goals of the toy above
+    vae = type("Stub", (), {"goal": staticmethod(lambda p: 2 * p)})()
+    start = torch.tensor([3.9])
+    cell = goal_inference.Cell({"goal_vae": vae}, None, SMOKE, None, configs.OTConfig(), "run", [], [start], "cpu",
+                               lambda: (["a", "b", "c"], body, body[:, -1]))
+    goal, _, extra = goal_inference.giil_retrieve(cell, seed=0)
+    assert goal is start and extra == {"retrieved": None, "support_distance": 0.1, "support_radius": 3.0}
 
 
 def test_retrieve_end_to_end_names_a_d_body_episode(smoke_run, tmp_path):
@@ -243,5 +261,8 @@ def test_retrieve_end_to_end_names_a_d_body_episode(smoke_run, tmp_path):
     found = [r for r in rows if r["method"] == "GIIL-retrieve"]
     cfgs = checkpoint.load_run(run)[0]
     assert len(found) == SMOKE.seeds and len({r["retrieved"] for r in found}) == 1  # one goal, every seed's starts
-    assert os.path.exists(os.path.join(cfgs["train"].data, "walker", found[0]["retrieved"]))
-    assert found[0]["config"] == {"eval_episodes": SMOKE.eval_episodes, "eval_steps": SMOKE.eval_steps, "preset": SMOKE.preset, "stride": 10}
+    retrieved = found[0]["retrieved"]  # None where demo 0's goal lies inside D_body's final goals
+    assert retrieved is None or os.path.exists(os.path.join(cfgs["train"].data, "walker", retrieved))
+    assert found[0]["support_distance"] >= 0 and (retrieved is None) == (found[0]["support_distance"] <= found[0]["support_radius"])
+    assert found[0]["config"] == {"eval_episodes": SMOKE.eval_episodes, "eval_steps": SMOKE.eval_steps, "preset": SMOKE.preset,
+                                  "stride": 10, "accept": "support"}
