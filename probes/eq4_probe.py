@@ -63,10 +63,10 @@ def bc_weight(anneal, step, updates):
     return 0.0 if anneal is None else anneal[0] + (anneal[1] - anneal[0]) * step / max(updates - 1, 1)
 
 
-def train_eq4(models, cfgs, data, updates, critic_real, log_every, seed, from_clone=False, anneal=None):
+def train_eq4(models, cfgs, data, updates, critic_real, log_every, seed, from_clone=False, anneal=None, eq4=True):
     """An actor and critic trained `updates` steps by Eq. 4 (with cloning weighted bc_weight(anneal, ...) beside it); the
-    world model, goal VAE and distance frozen. Fresh ones seeded from `seed`, or with from_clone the run's own. Returns
-    the log rows."""
+    world model, goal VAE and distance frozen. Fresh ones seeded from `seed`, or with from_clone the run's own. eq4
+    False: the actor steps on the cloning alone (the control of Eq. 4's share). Returns the log rows."""
     wc, ac, cc = cfgs["wm"], cfgs["ac"], cfgs["cloning"]
     wm, vae, dist_net = models["world_model"], models["goal_vae"], models["dist_net"]
     torch.manual_seed(seed)
@@ -93,7 +93,7 @@ def train_eq4(models, cfgs, data, updates, critic_real, log_every, seed, from_cl
             c_loss = c_loss + real_critic_loss(critic, slow_critic, dist_net, post_feat, real_goals, ac)
         if (weight := bc_weight(anneal, step, updates)) > 0:
             bc, m_bc = cloning.bc_loss(actor, post_feat, goal_feat, batch["action"], final_goal, cc.bc_final)
-            a_loss, m = a_loss + weight * bc, m | m_bc
+            a_loss, m = (a_loss if eq4 else 0.0) + weight * bc, m | m_bc
         rundir.checked_step(opt_actor, a_loss, "Eq. 4 actor loss", step, stop, ac.grad_clip)
         rundir.checked_step(opt_critic, c_loss, "Eq. 4 critic loss", step, stop, ac.grad_clip)
         policy.ema_update(slow_critic, critic, ac.slow_critic_rate)
@@ -112,6 +112,7 @@ def summary(rows):
     groups = {}
     for row in rows:
         start = "clone, bc {:g} -> {:g}".format(*row["bc_anneal"]) if row.get("bc_anneal") else "clone" if row.get("from_clone") else "fresh"
+        start += "" if row.get("eq4", True) else ", no Eq. 4"
         groups.setdefault((row["run"], start, row.get("distance", "run"), row["horizon"], row["starts"], row["critic_real"], row["updates"]), []).append(row)
     out = ["| run | actor | d | horizon | starts | critic on real | updates | seeds | goal reaching | minus its start (paired) | imagined minus real -d | -d own / other / random |",
            "|---|---|---|---|---|---|---|---|---|---|---|---|"]
@@ -141,6 +142,8 @@ def main():
                         "(its cloned, polished actor) instead of fresh ones")
     parser.add_argument("--bc-anneal", type=float, nargs=2, metavar=("FIRST", "LAST"), help="hindsight cloning beside Eq. 4's "
                         "actor loss, its weight linear from FIRST to LAST over the updates (ROT: 1.0 0.1)")
+    parser.add_argument("--no-eq4", action="store_true", help="with --from-clone --bc-anneal: the actor steps on the cloning "
+                        "alone, the control of what Eq. 4's actor loss adds")
     parser.add_argument("--seed", type=int, default=0, help="of the fresh actor, critic and batches")
     parser.add_argument("--episodes", type=int, default=3, help="benchmark episodes per demo goal (the benchmark's own: 3)")
     parser.add_argument("--eval-steps", type=int, default=envs.EPISODE_STEPS, help="steps of each benchmark episode")
@@ -152,6 +155,8 @@ def main():
         return
     if not args.run:
         parser.error("name a trained run, or --summary JSONL")
+    if args.no_eq4 and not (args.from_clone and args.bc_anneal):
+        parser.error("--no-eq4 leaves the cloning alone: it goes with --from-clone and --bc-anneal")
     if args.bc_anneal and min(args.bc_anneal) < 0:
         parser.error(f"--bc-anneal {args.bc_anneal[0]:g} {args.bc_anneal[1]:g}: cloning weights are >= 0 (ROT's: 1.0 0.1)")
     torch.set_num_threads(1)
@@ -168,14 +173,14 @@ def main():
         updates = args.distance_updates or (20000 if args.distance == "td" else 3000)
         reading = distance_probe.fit(x, g, updates=updates, seed=args.seed, **distance_probe.READINGS[args.distance]).requires_grad_(False)
         models["dist_net"] = distance_probe.DecodedDistance(reading, wm.decoder)
-    log = train_eq4(models, cfgs, data, args.updates, args.critic_real, args.log_every, args.seed, args.from_clone, args.bc_anneal)
+    log = train_eq4(models, cfgs, data, args.updates, args.critic_real, args.log_every, args.seed, args.from_clone, args.bc_anneal, not args.no_eq4)
     scores = evaluate.goal_reaching(models, cfgs, args.episodes, args.eval_steps, envs.BODY_TASKS)
     print("\n".join(evaluate.summary(scores)))
     gaps = [np.subtract(*imagination_gap.task_gap(models, cfgs, task)) for task in envs.BODY_TASKS]
     gap = float(np.concatenate(gaps).mean())
     print(f"imagined minus real -d on the benchmark's episodes: {gap:.3f}")
     row = {"run": args.run, "weights_id": rundir.weights_id(ckpt), "horizon": ac.horizon, "starts": ac.starts, "critic_real": args.critic_real,
-           "distance": args.distance, "from_clone": args.from_clone, "bc_anneal": args.bc_anneal,
+           "distance": args.distance, "from_clone": args.from_clone, "bc_anneal": args.bc_anneal, "eq4": not args.no_eq4,
            "updates": args.updates, "seed": args.seed, "episodes": args.episodes, "gap": gap, "log": log,
            "scores": {t: float(np.mean(s["policy"])) for t, s in scores.items()},
            "average": float(np.mean([np.mean(s["policy"]) for s in scores.values()]))}

@@ -359,6 +359,8 @@ def test_eq4_probe_from_the_clone_without_updates_scores_the_runs_own_benchmark(
     probe = probe_script("eq4_probe")
     assert [probe.bc_weight((1.0, 0.1), k, 4) for k in range(4)] == pytest.approx([1.0, 0.7, 0.4, 0.1])
     assert probe.bc_weight(None, 3, 4) == 0.0
+    alone = subprocess.run([sys.executable, "probes/eq4_probe.py", smoke_run, "--no-eq4"], cwd=ROOT, capture_output=True, text=True)
+    assert alone.returncode == 2 and "--no-eq4 leaves the cloning alone: it goes with --from-clone and --bc-anneal" in alone.stderr
     out = str(tmp_path / "rows.jsonl")
     result = subprocess.run([sys.executable, "probes/eq4_probe.py", smoke_run, "--from-clone", "--bc-anneal", "1", "0.1", "--updates", "0",
                              "--episodes", "1", "--eval-steps", "10", "--out", out],
