@@ -31,6 +31,7 @@ import argparse
 import dataclasses
 import json
 import os
+import re
 import sys
 import time
 
@@ -108,12 +109,13 @@ def train_eq4(models, cfgs, data, updates, critic_real, log_every, seed, from_cl
 
 def summary(rows):
     """One line per (run, guard): the benchmark average over seeds, mean +- s.e., the gap and the reachable rewards; from
-    the clone, also the average minus the run's own benchmark, paired by run."""
+    the clone, also the average minus the run's own benchmark, paired by run. Runs that differ only in their training
+    seed (runs/<name>_s<seed>) share a line, as runs/<name>_s*."""
     groups = {}
     for row in rows:
         start = "clone, bc {:g} -> {:g}".format(*row["bc_anneal"]) if row.get("bc_anneal") else "clone" if row.get("from_clone") else "fresh"
         start += "" if row.get("eq4", True) else ", no Eq. 4"
-        groups.setdefault((row["run"], start, row.get("distance", "run"), row["horizon"], row["starts"], row["critic_real"], row["updates"]), []).append(row)
+        groups.setdefault((re.sub(r"_s\d+$", "_s*", row["run"].rstrip("/")), start, row.get("distance", "run"), row["horizon"], row["starts"], row["critic_real"], row["updates"]), []).append(row)
     out = ["| run | actor | d | horizon | starts | critic on real | updates | seeds | goal reaching | minus its start (paired) | imagined minus real -d | -d own / other / random |",
            "|---|---|---|---|---|---|---|---|---|---|---|---|"]
     cell = lambda x, digits: f"{np.mean(x):.{digits}f}" + (f" +- {evaluate.stderr(x):.{digits}f}" if len(x) > 1 else "")  # noqa: E731
