@@ -37,7 +37,7 @@ from video_encoder import check_same_encoder, load_encoder
 REMOVED = {"train": dict(act_temperature=0.0, cover_edges=0, fidelity_every=0, wm_steps=0),
            "wm": dict(overshoot=0, overshoot_starts=4),
            "ac": dict(reward="distance", mixture=1, actor_input="feat", uncertainty=0.0),
-           "cloning": dict(bc_awr=0.0, bc_polish_ema=0.0, bc_polish_fresh=0)}
+           "cloning": dict(bc_awr=0.0, bc_polish_ema=0.0, bc_polish_fresh=0, bc_advantage=0.0)}
 
 
 def build_models(cfgs, obs_shape, action_dim, p_dim, device):

@@ -5,9 +5,6 @@ docs/ablations.md, Phase 1), so the actor's loss also clones D_body's own action
   bc_loss  -log pi(a_t | s_t, g), g the goal encoder's state of a later frame of the same segment or of the
            episode's last frame
   polish   cloning steps on the frozen final world model after training (--ac-bc-polish)
-With bc_advantage > 0 (ours, being measured: docs/ablations.md) each cloned action is weighted by exp(beta A), A its
-advantage under the td reading's goal-conditioned value fit on real D_body sequences (distance.py), as GCIVL and
-HIQL weight their clone (Park et al. 2023, 2024); plain cloning imitates the average of D_body's actions for a goal.
 train.py adds bc * bc_loss to Eq. 4's actor loss (policy.policy_losses) and takes bc_steps - 1 more cloning steps per
 update (configs.CloningConfig; its flags are --ac-bc...: a term of the actor's loss).
 """
@@ -19,54 +16,25 @@ from tqdm import tqdm
 import rundir
 
 
-WEIGHT_CLIP = 100.0  # exp(beta A) clipped above, OGBench's GCIVL / HIQL (Park et al. 2024)
-
-
-def advantage(phi_now, phi_next, phi_goal, gamma):
-    """A(s_t, a_t, g) = r + gamma V(s_{t+1}, g) - V(s_t, g) with r = -1 per step and V(s, g) = -||phi(s) - phi(g)||, the td
-    reading's value in steps (distance.DistanceNet.phi): > 0 where the recorded action brought g nearer than the value
-    expects of s_t. phi_* (N, P) -> (N,)."""
-    value = lambda phi: -(phi - phi_goal).norm(dim=-1)  # noqa: E731
-    return -1.0 + gamma * value(phi_next) - value(phi_now)
-
-
-def td_value(dist_net, post_feat, goal_feat, final_goal):
-    """bc_loss's `value`: the td reading's phi of the posterior states, the frames' goals and the last frame's goal."""
-    with torch.no_grad():
-        return dist_net.phi(post_feat), dist_net.phi(goal_feat), dist_net.phi(final_goal), dist_net.cfg.gamma
-
-
-def bc_loss(actor, post_feat, goal_feat, action, final_goal=None, final_share=0.0, value=None, beta=0.0):
+def bc_loss(actor, post_feat, goal_feat, action, final_goal=None, final_share=0.0):
     """Hindsight goal-conditioned behaviour cloning (ours, a deviation; GCSL, Ghosh et al. 2021): D_body has no task
     labels, but each of its actions a_t reaches what its own episode shows later, so -log pi(a_t | s_t, g) with g the
     goal encoder's state of a later frame of the same segment, for every step t of every segment (each with its own
     random later frame); with probability final_share, g is instead final_goal, the goal of the episode's last frame
     (what evaluation and GIIL-ZS feed the policy: a standing expert's last frame is then the goal of its getting up).
     post_feat (B, T, F) posterior feats, goal_feat (B, T, F) goal-encoder goals of every frame, final_goal (B, F),
-    action (B, T, A) with action[:, t] = a_{t-1} (world_model.py's alignment). value: None, or (phi of post_feat (B, T, P),
-    of goal_feat (B, T, P), of final_goal (B, P), gamma) of the td reading, and beta > 0: each -log pi weighted by
-    exp(beta A) (advantage; clipped at WEIGHT_CLIP, divided by the batch's mean weight so that the step keeps its size)."""
+    action (B, T, A) with action[:, t] = a_{t-1} (world_model.py's alignment)."""
     B, T, _ = post_feat.shape
     device = post_feat.device
     t = torch.arange(T - 1, device=device).expand(B, -1)  # (B, T - 1): s_t, acted on with a_t = action[:, t + 1]
     later = t + 1 + (torch.rand(B, T - 1, device=device) * (T - 1 - t)).long()  # a frame in (t, T - 1]
     rows = torch.arange(B, device=device)[:, None].expand(-1, T - 1)
     final = torch.rand(B, T - 1, 1, device=device) < final_share if final_share > 0 else None
-    pick = lambda frames, last: frames[rows, later] if final is None else torch.where(final, last[:, None], frames[rows, later])  # noqa: E731
-    goal = pick(goal_feat, final_goal)  # (B, T - 1, F): each step's goal
+    goal = goal_feat[rows, later] if final is None else torch.where(final, final_goal[:, None], goal_feat[rows, later])  # (B, T - 1, F)
     feat, goal = post_feat[rows, t].flatten(0, 1).detach(), goal.flatten(0, 1).detach()
     a = action[rows, t + 1].flatten(0, 1).clamp(-0.999, 0.999)  # tanh is never exactly +-1
-    nll = -actor.log_prob(feat, goal, torch.atanh(a))  # (N,)
-    if value is None or beta <= 0:
-        loss = nll.mean()
-        return loss, {"bc_loss": loss.item()}
-    phi_post, phi_goal, phi_final, gamma = value
-    with torch.no_grad():
-        adv = advantage(phi_post[rows, t], phi_post[rows, t + 1], pick(phi_goal, phi_final), gamma).flatten()  # (N,)
-        weight = torch.exp(beta * adv).clamp(max=WEIGHT_CLIP)
-        weight = weight / weight.mean()
-    loss = (weight * nll).mean()
-    return loss, {"bc_loss": nll.mean().item(), "bc_advantage": adv.mean().item(), "bc_weight_max": weight.max().item()}
+    loss = -actor.log_prob(feat, goal, torch.atanh(a)).mean()
+    return loss, {"bc_loss": loss.item()}
 
 
 def polish(models, cfgs, data, device):
@@ -85,13 +53,13 @@ def polish(models, cfgs, data, device):
             b = data.sample(wc.batch, rng, device)
             post, _ = wm.observe(b[wc.obs], b["action"], b["is_first"])
             feat, goal, final = wm.feat(post), vae.goal(b["p"]), vae.goal(b["p_last"])
-            cache.append((feat, goal, b["action"], final, td_value(models["dist_net"], feat, goal, final) if cc.bc_advantage else None))
+            cache.append((feat, goal, b["action"], final))
     opt = torch.optim.Adam(actor.parameters(), lr=ac.actor_lr)
     stop = lambda: f"the checkpoint keeps the actor before the polish (a learning rate too high? --ac-actor-lr is {ac.actor_lr})"
     with torch.random.fork_rng(devices=[]):
         torch.manual_seed(tc.seed + 2)
         for k in tqdm(range(cc.bc_polish), desc="polish the actor (behaviour cloning on the final world model)"):
-            feat, goal, action, final, value = cache[k % len(cache)]
-            loss, m = bc_loss(actor, feat, goal, action, final, cc.bc_final, value, cc.bc_advantage)
+            feat, goal, action, final = cache[k % len(cache)]
+            loss, m = bc_loss(actor, feat, goal, action, final, cc.bc_final)
             rundir.checked_step(opt, loss, "the polish's behaviour-cloning loss", k, stop, ac.grad_clip)
     print(f"polished the actor: {cc.bc_polish} cloning steps on the final world model, bc_loss {m['bc_loss']:.3f}")

@@ -131,9 +131,6 @@ class CloningConfig:
     bc_steps: int = 10  # actor steps on bc_loss per update: the first with Eq. 4's loss, the rest on bc_loss alone, each with fresh goals (ours)
     bc_polish: int = 5000  # bc_loss steps of the actor alone on the frozen final world model and goal VAE, after the last update (ours; polish)
     bc_polish_batches: int = 250  # D_body batches whose posterior states the polish computes once and cycles (ours; polish)
-    # beta of the clone's weights exp(beta A), A the advantage of the recorded action under the td reading's value (needs
-    # --dist-reading td; ours after GCIVL, Park et al. 2024, whose alpha is 10); 0: every action weighted alike (GCSL)
-    bc_advantage: float = 0.0
 
 
 # every phase-1 component's config class and flag prefix ('' = no prefix); their presets are PRESETS[<component>]

@@ -79,8 +79,6 @@ def train(cfgs, run_dir, resume):
     """Phase 1 into run_dir, which no other process writes meanwhile (rundir.lock); flags are checked first."""
     for name, config in cfgs.items():
         rundir.check_flags(config, COMPONENTS[name][1])
-    if cfgs["cloning"].bc_advantage and cfgs["dist"].reading != "td":
-        raise ValueError("--ac-bc-advantage weighs the clone by the td reading's value: pass --dist-reading td with it")
     ckpt_path = os.path.join(run_dir, "checkpoint.pt")
     if resume and not os.path.exists(ckpt_path):
         raise ValueError(f"--resume: no checkpoint at {ckpt_path}; drop --resume to start a new run there")
@@ -170,8 +168,7 @@ def pretrain(cfgs, run_dir, resume):
             goals = policy.sample_goals(post_feat, goal_feat, index, batch["is_first"], ac.goal_mix, ac.goal_near)
             a_loss, c_loss, m4 = policy.policy_losses(wm, dist_net, actor, critic, slow_critic, models["return_norm"], start, goals, ac)
             # ours, beside Eq. 4: hindsight behaviour cloning of D_body's actions (cloning.py), in cc.bc_steps actor steps
-            value = cloning.td_value(dist_net, post_feat, goal_feat, final_goal) if cc.bc_advantage else None
-            clone = lambda: cloning.bc_loss(actor, post_feat, goal_feat, batch["action"], final_goal, cc.bc_final, value, cc.bc_advantage)
+            clone = lambda: cloning.bc_loss(actor, post_feat, goal_feat, batch["action"], final_goal, cc.bc_final)
             bc, m_bc = clone() if cc.bc else (0.0, {})
             if logged and cc.bc:  # Eq. 4's share of the actor's step against the cloning's (evaluate.gradient_share)
                 m4.update(policy.gradient_norms(actor, eq4=a_loss, bc=cc.bc * bc))

@@ -9,7 +9,6 @@ import pytest
 import torch
 
 import checkpoint
-import cloning
 import collect
 import configs
 import envs
@@ -270,15 +269,3 @@ def test_a_stored_config_with_a_deleted_switch_loads_at_its_off_value_and_is_ref
     pixels = train.resolve_configs(train_args(**{"wm.obs": "pixels"}), "smoke")  # the cpu recipe's d reads decoded state vectors
     with pytest.raises(ValueError, match="--dist-input obs reads decoded state vectors: with --obs pixels pass --dist-input feat"):
         checkpoint.build_models(pixels, (64, 64, 3), 6, 64, "cpu")
-
-
-def test_advantage_weighted_clone_trains_on_the_td_value_and_is_refused_without_it(smoke_data, tmp_path):
-    """--ac-bc-advantage: phase 1 and the polish weight the clone by the td reading's advantage (logged); with Eq. 7's d
-    there is no value to weigh by, and the flag is refused in one line."""
-    cfgs = train.resolve_configs(train_args(data=smoke_data, **{"cloning.bc_advantage": 10.0, "dist.reading": "td"}), "smoke")
-    run = train.train(cfgs, str(tmp_path / "awr"), resume=False)
-    last = [json.loads(l) for l in open(os.path.join(run, "metrics.jsonl"))][-1]
-    assert np.isfinite(last["bc_advantage"]) and 1.0 <= last["bc_weight_max"] <= cloning.WEIGHT_CLIP
-    cfgs = train.resolve_configs(train_args(data=smoke_data, **{"cloning.bc_advantage": 10.0}), "smoke")
-    with pytest.raises(ValueError, match="--ac-bc-advantage weighs the clone by the td reading's value: pass --dist-reading td"):
-        train.train(cfgs, str(tmp_path / "eq7"), resume=False)
