@@ -219,6 +219,17 @@ def test_retrieval_scorers_rank_a_noisy_copy_of_a_demo_first():
         assert int(np.argmax(scorer(body, body[:, -1], demo, demo[:, -1]))) == 3, name
 
 
+def test_neighbour_objective_scores_a_goal_by_the_episodes_that_ended_nearest_it():
+    """probes/neighbour_objective.py: a goal reads the mean score of the k D_body episodes whose final goals lie
+    nearest it, so the goal beside the best episode's end ranks first."""
+    neighbour = probe_script("neighbour_objective")
+    final_goals = torch.tensor([[0.0, 0.0], [10.0, 0.0], [0.0, 10.0], [10.0, 10.0]])
+    score = np.array([1.0, 5.0, 2.0, 3.0])
+    goals = torch.tensor([[9.0, 2.0], [1.0, 2.0], [2.0, 9.0]])
+    assert neighbour.neighbour_objective(goals, final_goals, score, 1).tolist() == [5.0, 1.0, 2.0]
+    assert neighbour.neighbour_objective(goals, final_goals, score, 2).tolist() == [4.0, 1.5, 2.5]
+
+
 def test_goal_variance_splits_goal_from_episode_noise():
     """Goals that differ only by their episodes' noise have no goal variance; a fixed offset per goal is all goal."""
     goal_variance = probe_script("goal_variance")
