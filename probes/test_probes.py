@@ -230,6 +230,24 @@ def test_neighbour_objective_scores_a_goal_by_the_episodes_that_ended_nearest_it
     assert neighbour.neighbour_objective(goals, final_goals, score, 2).tolist() == [4.0, 1.5, 2.5]
 
 
+def test_standing_subgoal_feeds_the_up_goal_by_its_rule():
+    """probes/standing_subgoal.py: g_up while the posture is below 0.8 (while), until it first reached 0.8 (until), or
+    below 0.3 (lying); the task's goal otherwise."""
+    subgoal = probe_script("standing_subgoal")
+
+    class Echo:
+        def act(self, feat, goal):
+            return goal
+
+    chosen = {}
+    for rule in ("while", "until", "lying"):
+        postures = iter([0.1, 0.5, 0.9, 0.5, 0.2])
+        switch = subgoal.Subgoal(Echo(), lambda: np.array([next(postures)]), torch.ones(1, 2), rule)
+        chosen[rule] = [switch.act(None, torch.zeros(1, 2))[0, 0].item() for _ in range(5)]
+    assert chosen == {"while": [1, 1, 0, 1, 1], "until": [1, 1, 0, 0, 0], "lying": [1, 0, 0, 0, 1]}
+    assert np.stack(switch.posture)[:, 0].tolist() == [0.1, 0.5, 0.9, 0.5, 0.2]
+
+
 def test_goal_variance_splits_goal_from_episode_noise():
     """Goals that differ only by their episodes' noise have no goal variance; a fixed offset per goal is all goal."""
     goal_variance = probe_script("goal_variance")
