@@ -16,23 +16,30 @@ from tqdm import tqdm
 import rundir
 
 
-def bc_loss(actor, post_feat, goal_feat, action, final_goal=None, final_share=0.0):
-    """Hindsight goal-conditioned behaviour cloning (ours, a deviation; GCSL, Ghosh et al. 2021): D_body has no task
-    labels, but each of its actions a_t reaches what its own episode shows later, so -log pi(a_t | s_t, g) with g the
-    goal encoder's state of a later frame of the same segment, for every step t of every segment (each with its own
-    random later frame); with probability final_share, g is instead final_goal, the goal of the episode's last frame
-    (what evaluation and GIIL-ZS feed the policy: a standing expert's last frame is then the goal of its getting up).
-    post_feat (B, T, F) posterior feats, goal_feat (B, T, F) goal-encoder goals of every frame, final_goal (B, F),
-    action (B, T, A) with action[:, t] = a_{t-1} (world_model.py's alignment)."""
+def relabel(post_feat, goal_feat, action, final_goal=None, final_share=0.0):
+    """GCSL's hindsight relabelling (Ghosh et al. 2021) of D_body segments: D_body has no task labels, but each of its
+    actions a_t reaches what its own episode shows later, so each step t of every segment is paired with the goal
+    encoder's state of a random later frame of the same segment; with probability final_share with final_goal instead,
+    the goal of the episode's last frame (what evaluation and GIIL-ZS feed the policy: a standing expert's last frame is
+    then the goal of its getting up). post_feat (B, T, F) posterior feats, goal_feat (B, T, F) goal-encoder goals of
+    every frame, final_goal (B, F), action (B, T, A) with action[:, t] = a_{t-1} (world_model.py's alignment)
+    -> (rows, t) indices (B, T - 1) of the states s_t, their goals (B, T - 1, F), their actions a_t (B, T - 1, A)."""
     B, T, _ = post_feat.shape
     device = post_feat.device
     t = torch.arange(T - 1, device=device).expand(B, -1)  # (B, T - 1): s_t, acted on with a_t = action[:, t + 1]
     later = t + 1 + (torch.rand(B, T - 1, device=device) * (T - 1 - t)).long()  # a frame in (t, T - 1]
     rows = torch.arange(B, device=device)[:, None].expand(-1, T - 1)
     final = torch.rand(B, T - 1, 1, device=device) < final_share if final_share > 0 else None
-    goal = goal_feat[rows, later] if final is None else torch.where(final, final_goal[:, None], goal_feat[rows, later])  # (B, T - 1, F)
+    goal = goal_feat[rows, later] if final is None else torch.where(final, final_goal[:, None], goal_feat[rows, later])
+    return (rows, t), goal, action[rows, t + 1]
+
+
+def bc_loss(actor, post_feat, goal_feat, action, final_goal=None, final_share=0.0):
+    """Hindsight goal-conditioned behaviour cloning (ours, a deviation; GCSL, Ghosh et al. 2021): -log pi(a_t | s_t, g)
+    for every step of every segment, g relabelled (relabel's arguments)."""
+    (rows, t), goal, a = relabel(post_feat, goal_feat, action, final_goal, final_share)
     feat, goal = post_feat[rows, t].flatten(0, 1).detach(), goal.flatten(0, 1).detach()
-    a = action[rows, t + 1].flatten(0, 1).clamp(-0.999, 0.999)  # tanh is never exactly +-1
+    a = a.flatten(0, 1).clamp(-0.999, 0.999)  # tanh is never exactly +-1
     loss = -actor.log_prob(feat, goal, torch.atanh(a)).mean()
     return loss, {"bc_loss": loss.item()}
 

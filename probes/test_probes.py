@@ -5,12 +5,14 @@ import os
 import shutil
 import subprocess
 import sys
+from unittest import mock
 
 import numpy as np
 import pytest
 import torch
 
 import checkpoint
+import cloning
 import configs
 import evaluate
 import video_encoder
@@ -217,6 +219,26 @@ def test_retrieval_scorers_rank_a_noisy_copy_of_a_demo_first():
     body[3] = demo[1] + 0.1 * rng.standard_normal((12, 16))
     for name, scorer in retrieval.SCORERS.items():
         assert int(np.argmax(scorer(body, body[:, -1], demo, demo[:, -1]))) == 3, name
+
+
+def test_filter_polish_keeps_the_steps_of_highest_advantage_and_all_of_them_is_the_plain_clone():
+    """probes/filter_polish.py: --keep 1 is cloning.bc_loss to the bit (same relabelling draws); --keep 0.5 clones the
+    half of the steps whose advantage under the td value is highest."""
+    import distance
+    import policy
+    filter_polish = probe_script("filter_polish")
+    dist_net = distance.DistanceNet(configs.DistanceConfig(reading="td", input="feat"), 6)
+    actor = policy.Actor(configs.ActorCriticConfig(units=16), 6, 6, 2)
+    post, goal_feat, final = torch.randn(3, 8, 6), torch.randn(3, 8, 6), torch.randn(3, 6)
+    action = torch.rand(3, 8, 2) * 2 - 1
+    torch.manual_seed(0)
+    plain = cloning.bc_loss(actor, post, goal_feat, action, final, 0.5)[0]
+    torch.manual_seed(0)
+    assert torch.equal(filter_polish.filtered_bc_loss(dist_net, 1.0, [])(actor, post, goal_feat, action, final, 0.5)[0], plain)
+    seen = {}
+    with mock.patch.object(actor, "log_prob", lambda f, g, a: seen.setdefault("n", len(f)) * torch.zeros(len(f))):
+        filter_polish.filtered_bc_loss(dist_net, 0.5, [])(actor, post, goal_feat, action, final, 0.5)
+    assert seen["n"] == 3 * 7 // 2 + 1  # 21 steps, the top half by quantile (ties aside)
 
 
 def test_neighbour_objective_scores_a_goal_by_the_episodes_that_ended_nearest_it():
