@@ -60,10 +60,10 @@ def summary(rows):
     for r in rows:
         groups.setdefault((re.sub(r"_s\d+$", "_s*", r["run"]), r["keep"]), []).append(r)
     out = ["| runs | keep | seeds | goal reaching | minus the run's own polish (paired) | per task, minus |", "|---|---|---|---|---|---|"]
-    cell = lambda x: f"{np.mean(x):.1f}" + (f" +- {evaluate.stderr(x):.1f}" if len(x) > 1 else "")  # noqa: E731
+    cell = lambda x, sign="": f"{np.mean(x):{sign}.1f}" + (f" +- {evaluate.stderr(x):.1f}" if len(x) > 1 else "")  # noqa: E731
     for (run, keep), g in groups.items():
         tasks = " / ".join(f"{t} {np.mean([r['scores'][t] - r['start_scores'][t] for r in g]):+.1f}" for t in g[0]["scores"])
-        out.append(f"| {run} | {keep:g} | {len(g)} | {cell([r['average'] for r in g])} | {cell([r['average'] - r['start_average'] for r in g])} | {tasks} |")
+        out.append(f"| {run} | {keep:g} | {len(g)} | {cell([r['average'] for r in g])} | {cell([r['average'] - r['start_average'] for r in g], '+')} | {tasks} |")
     return "\n".join(out)
 
 
