@@ -37,6 +37,7 @@ from video_encoder import check_same_encoder, load_encoder
 REMOVED = {"train": dict(act_temperature=0.0, cover_edges=0, fidelity_every=0, wm_steps=0),
            "wm": dict(overshoot=0, overshoot_starts=4),
            "ac": dict(reward="distance", mixture=1, actor_input="feat", uncertainty=0.0),
+           "dist": dict(reading="eq7", gamma=0.99, tau=0.95, td_n=10, slow_rate=0.02),
            "cloning": dict(bc_awr=0.0, bc_polish_ema=0.0, bc_polish_fresh=0, bc_advantage=0.0)}
 
 
@@ -54,9 +55,6 @@ def build_models(cfgs, obs_shape, action_dim, p_dim, device):
         "return_norm": policy.ReturnNorm(cfgs["ac"].return_norm_decay),
     }
     models["critic"], models["slow_critic"] = policy.make_critics(cfgs["ac"], wm.feat_dim, wm.feat_dim)
-    if cfgs["dist"].reading == "td":  # the slow copy of d that computes its targets (distance.td_loss)
-        models["slow_dist"] = make_dist().requires_grad_(False)
-        models["slow_dist"].load_state_dict(models["dist_net"].state_dict())
     return {k: m.to(device) for k, m in models.items()}
 
 

@@ -79,21 +79,14 @@ class GoalVAEConfig:
 
 @dataclasses.dataclass
 class DistanceConfig:
-    choices: ClassVar[dict] = {"input": ("obs", "feat"), "reading": ("eq7", "td")}  # train.py's flags accept these alone
-    ranges: ClassVar[dict] = {"encoder_goals": (0, 1), "grad_clip": "> 0", "gamma": (0, 1), "tau": (0, 1), "slow_rate": (0, 1)}
+    choices: ClassVar[dict] = {"input": ("obs", "feat")}  # train.py's flags accept these alone
+    ranges: ClassVar[dict] = {"encoder_goals": (0, 1), "grad_clip": "> 0"}
     units: int = 128  # width of d's MLP (LEXA: 4 x 128)
     layers: int = 4  # hidden layers of d's MLP (LEXA)
     pairs: int = 1024  # candidate pairs of each kind (same / different trajectory) per batch (ours)
     contrastive_weight: float = 0.1  # weight of Eq. 7's contrastive term (LEXA's 10% negatives ~ 0.11; Eq. 7: 1, equal weights)
     encoder_goals: int = 1  # 1: also fit d(s_i, g_j) with g_j the goal encoder's goal of frame j (ours); 0: Eq. 7 alone
     input: str = "obs"  # 'obs': d on decoded observations (ours, LEXA's embedding; state obs only); 'feat': on [h, z] (Eq. 7)
-    # 'eq7': Eq. 6-7's regression and contrastive terms (the paper; the cpu recipe's); 'td': d = ||phi(s) - phi(g)|| fit
-    # by temporal differences along the data (ours, after HILP, Park et al. 2024; module docstring)
-    reading: str = "eq7"
-    gamma: float = 0.99  # td: discount of the steps counted (HILP)
-    tau: float = 0.95  # td: expectile of the value targets (HILP)
-    td_n: int = 10  # td: steps along the data before bootstrapping (ours; HILP: 1)
-    slow_rate: float = 0.02  # td: EMA rate of the slow copy that computes the targets (ours; HILP: 0.005)
     lr: float = 3e-4  # Adam (ours: the usual rate for a small MLP)
     grad_clip: float = 100.0  # global gradient norm, as the world model (Dreamer V1)
 

@@ -1,4 +1,4 @@
-"""Eq. 6-7 and App. B: the temporal distance network d(s_i, s_j), its regression + contrastive loss; our td reading.
+"""Eq. 6-7 and App. B: the temporal distance network d(s_i, s_j), its regression + contrastive loss.
 
 Eq. 6, D^dis(s_i, s_j) = (j - i) / T for j > i in one trajectory. T is "the maximum trajectory horizon"; pairs
 are drawn inside a training segment, so the longest horizon a pair spans is the segment length, and that is the
@@ -31,26 +31,13 @@ world model's own decoder: d reads the decoded observation (symlog of the state 
 body's pose and velocities and no history (in imagination, h continues the start state's history; docs/ablations.md,
 Phase 1, has what each input measured). `input = "feat"` is Eq. 7 as written.
 
-The td reading (ours, `reading = "td"`; Park et al. 2024, HILP). Eq. 7 labels every pair of states of two episodes 1,
-so d towards a demo's goal, always another episode's state, can only say "not this episode" unless the network
-generalises. The td reading makes d a metric, d(s, g) = (1 - gamma) ||phi(s) - phi(g)||, and fits V(s, g) =
--d / (1 - gamma), the discounted steps from s to g, by temporal differences along the data, as a goal-conditioned
-value: V(s_t, g) <- -(1 + gamma + ... + gamma^(n-1)) + gamma^n V'(s_{t+n}, g), an expectile at tau (optimistic: the
-shortest way the data shows), the sum ending where a goal of the same episode is met, V = 0 at s_t's own frame's goal,
-V' a slow copy (`slow_dist`). Goals are the current frame's, a later frame of the segment at a geometric gap, or any
-frame of the batch (GOAL_SHARES), each as the posterior's or the goal encoder's (encoder_goals). Bootstrapping through
-states that look alike stitches episodes together. What it measured: docs/ablations.md, "Eq. 4 alone", and
-docs/results.md, "Does the temporal distance rank steps?".
+d fit by temporal differences instead (HILP's value learning, Park et al. 2024) was measured in training and not kept
+(docs/ablations.md, Phase 1); it lives in probes/distance_probe.py, the lead of Eq. 4 started from the clone.
 """
-import math
-
 import torch
 import torch.nn as nn
 
 from world_model import mlp
-
-PHI_DIM = 64  # td: phi's output (ours, as the probe's; HILP: 32)
-GOAL_SHARES = (0.2, 0.5, 0.3)  # td: goals the current frame's, a later one of its episode, any frame of the batch (HILP's)
 
 
 class DistanceNet(nn.Module):
@@ -62,21 +49,13 @@ class DistanceNet(nn.Module):
         super().__init__()
         self.cfg, self.feat_dim = cfg, feat_dim
         assert cfg.input in ("feat", "obs") and (cfg.input == "feat" or decoder is not None), (cfg.input, decoder)
-        assert cfg.reading in ("eq7", "td"), cfg.reading
         self.embed = decoder.forward if cfg.input == "obs" else (lambda feat: feat)
         in_dim = decoder[-1].out_features if cfg.input == "obs" else feat_dim
-        self.net = mlp(in_dim, cfg.units, PHI_DIM, cfg.layers) if cfg.reading == "td" else mlp(2 * in_dim, cfg.units, 1, cfg.layers)
+        self.net = mlp(2 * in_dim, cfg.units, 1, cfg.layers)
 
     def distance(self, x_i, x_j):
-        """d on embedded inputs: x_i, x_j (..., E) -> (...). td: ||phi(x_i) - phi(x_j)|| steps, times 1 - gamma."""
-        if self.cfg.reading == "td":
-            return (self.net(x_i) - self.net(x_j)).norm(dim=-1) * (1 - self.cfg.gamma)
+        """d on embedded inputs: x_i, x_j (..., E) -> (...)."""
         return self.net(torch.cat([x_i, x_j], -1)).squeeze(-1)
-
-    def phi(self, feat):
-        """The td reading's embedding in steps, V(s, g) = -||phi(s) - phi(g)|| (cloning.advantage): feat (..., F) -> (..., PHI_DIM)."""
-        assert self.cfg.reading == "td", "phi is the td reading's"
-        return self.net(self.embed(feat.reshape(-1, self.feat_dim))).reshape(*feat.shape[:-1], PHI_DIM)
 
     def forward(self, feat_i, feat_j):
         """feat_i, feat_j (..., F) -> (...)."""
@@ -126,35 +105,3 @@ def distance_loss(dist_net, feat, pairs, horizon_T, contrastive_weight=1.0, goal
     metrics["dist_loss"] = loss.item()
     return loss, metrics
 
-
-def td_loss(dist_net, slow_net, x, goals, is_first, num, generator=None):
-    """The td reading's loss (module docstring; HILP's value learning), in place of Eq. 7: x (B, T, E) embedded states,
-    goals a list of (B, T, E) embedded goals of the same frames (the posterior's, the goal encoder's), is_first (B, T),
-    num steps drawn -> (loss, metrics). V(s, g) = -d / (1 - gamma) in steps; slow_net the slow copy for the targets."""
-    cfg, (B, T, _) = dist_net.cfg, x.shape
-    draw = lambda high: torch.randint(high, (num,), generator=generator).to(x.device)  # noqa: E731
-    index = torch.arange(T, device=x.device).expand(B, T)
-    start_after = torch.where(is_first, index, T).flip(1).cummin(1).values.flip(1)  # (B, T): the first episode start at or after t
-    end = torch.cat([start_after[:, 1:], torch.full_like(start_after[:, :1], T)], 1) - 1  # the last step of t's episode in its segment
-    b, t = draw(B), draw(T)
-    keep = t < end[b, t]  # a step after t to bootstrap from
-    b, t, end = b[keep], t[keep], end[b[keep], t[keep]]
-    n = len(b)
-    kind = torch.bucketize(torch.rand(n, generator=generator), torch.tensor(GOAL_SHARES).cumsum(0)[:-1]).to(x.device)  # 0 current, 1 later, 2 any
-    uniform = torch.rand(n, generator=generator).clamp_min(torch.finfo(torch.float32).tiny)  # rand's 0: an infinite gap
-    gap = (torch.log(uniform) / math.log(cfg.gamma)).floor().long().to(x.device) + 1  # geometric, mean 1 / (1 - gamma)
-    later = torch.minimum(t + gap, end)
-    goal_b, goal_t = torch.where(kind == 2, draw(B)[:n], b), torch.where(kind == 0, t, torch.where(kind == 1, later, draw(T)[:n]))
-    which = torch.randint(len(goals), (n,), generator=generator).to(x.device)
-    goal = torch.stack([g[goal_b, goal_t] for g in goals])[which, torch.arange(n, device=x.device)]
-    steps = torch.minimum(torch.full_like(t, cfg.td_n), end - t)  # along the data, then the slow value
-    reached = (kind == 1) & (later - t <= steps)  # a goal of the same episode met within them ends the sum
-    steps = torch.where(reached, later - t, steps)
-    scale = 1 - cfg.gamma
-    with torch.no_grad():
-        tail = torch.where(reached, 0.0, slow_net.distance(x[b, t + steps], goal) / scale)
-        target = torch.where(kind == 0, 0.0, -(1 - cfg.gamma**steps) / scale - cfg.gamma**steps * tail)
-    value = -dist_net.distance(x[b, t], goal) / scale
-    u = target - value
-    loss = (torch.where(u < 0, 1 - cfg.tau, cfg.tau) * u**2).mean()
-    return loss, {"dist_loss": loss.item(), "dist_value": value.mean().item()}

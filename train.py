@@ -150,17 +150,9 @@ def pretrain(cfgs, run_dir, resume):
         # Eq. 7: the temporal distance on pairs of posterior states, and of states and encoder goals (ours)
         with torch.no_grad():  # the goal encoder's g of every frame (B, T, F), what GIIL-ZS feeds the policy, and of the last (B, F)
             goal_feat, final_goal = vae.goal(batch["p"]), vae.goal(batch["p_last"])
-        if dc.reading == "td":  # ours (HILP's value learning, distance.py), in place of Eq. 7's labels
-            with torch.no_grad():
-                x = dist_net.embed(post_feat)
-                goals = [x, dist_net.embed(goal_feat)] if dc.encoder_goals else [x]
-            loss, m7 = distance.td_loss(dist_net, models["slow_dist"], x, goals, batch["is_first"], dc.pairs)
-            update("dist_net", loss, "temporal-difference distance loss")
-            policy.ema_update(models["slow_dist"], dist_net, dc.slow_rate)
-        else:
-            pairs = distance.sample_pairs(batch["episode"], batch["is_first"], dc.pairs)
-            loss, m7 = distance.distance_loss(dist_net, post_feat, pairs, wc.seq_len, dc.contrastive_weight, goal_feat if dc.encoder_goals else None)
-            update("dist_net", loss, "Eq. 7 distance loss")
+        pairs = distance.sample_pairs(batch["episode"], batch["is_first"], dc.pairs)
+        loss, m7 = distance.distance_loss(dist_net, post_feat, pairs, wc.seq_len, dc.contrastive_weight, goal_feat if dc.encoder_goals else None)
+        update("dist_net", loss, "Eq. 7 distance loss")
         metrics.update(m7)
         # Eq. 4 after policy_start updates, once d gives a meaningful reward: the actor-critic in imagination, reward -d(s, g)
         if step >= tc.policy_start:

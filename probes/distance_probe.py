@@ -11,11 +11,18 @@ goals alike):
   value learning, Kostrikov et al. 2022, which HILP uses, Park et al. 2024);
 * `hilbert`: d(s, g) = ||phi(s) - phi(g)|| (HILP's Hilbert representation, Park et al. 2024) with Eq. 7's loss:
   d(s, s) = 0 and the triangle inequality by construction;
-* `td`: the same Hilbert d learnt as HILP learns it, not from Eq. 6's labels (distance.td_loss, train.py's
-  `--dist-reading td`; distance.py's docstring): a goal-conditioned value V = -d fit by temporal differences along the
-  data, here on whole episodes, goals of the same episode at a geometric gap or of any episode. Ours against HILP's
-  settings: n = 10 steps along the data before bootstrapping and a slow rate of 0.02 where HILP bootstraps one step at
-  0.005: at 20000 updates that reading's d had grown to 2 steps at a gap of 100, this one's to 8, ranking alike.
+* `td`: the same Hilbert d learnt as HILP learns it, not from Eq. 6's labels (td_loss; fit in training too until
+  measured worse there, docs/ablations.md): Eq. 7 labels every pair of states of two episodes 1, so d towards a demo's
+  goal, always another episode's state, can only say "not this episode" unless the network generalises. Here d is a
+  metric, d(s, g) = (1 - gamma) ||phi(s) - phi(g)||, and V(s, g) = -d / (1 - gamma), the discounted steps from s to g,
+  is fit by temporal differences along the data as a goal-conditioned value: V(s_t, g) <- -(1 + gamma + ... +
+  gamma^(n-1)) + gamma^n V'(s_{t+n}, g), an expectile at tau (optimistic: the shortest way the data shows), the sum
+  ending where a goal of the same episode is met, V = 0 at s_t's own frame's goal, V' a slow copy. Goals are the
+  current frame's, a later frame of the episode at a geometric gap, or any frame (GOAL_SHARES, HILP's), each as the
+  posterior's or the goal encoder's; bootstrapping through states that look alike stitches episodes together. Ours
+  against HILP's settings: n = 10 steps along the data before bootstrapping and a slow rate of 0.02 where HILP
+  bootstraps one step at 0.005: at 20000 updates that reading's d had grown to 2 steps at a gap of 100, this one's to
+  8, ranking alike.
 
 Beside the step ranking, each row measures what Eq. 4 needs of d towards the benchmark's stand goals (posture_ranking):
 does -d rank a held-out D_body state by the body's posture (envs.observed_posture: 1 upright at stand height)?
@@ -24,6 +31,7 @@ does -d rank a held-out D_body state by the body's posture (envs.observed_postur
     python probes/distance_probe.py --summary docs/results/distance_probe_walker.jsonl
 """
 import argparse
+import math
 import os
 import sys
 
@@ -33,7 +41,6 @@ import torch
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 import checkpoint  # noqa: E402
 import collect  # noqa: E402
-import configs  # noqa: E402
 import distance  # noqa: E402
 import envs  # noqa: E402
 import evaluate  # noqa: E402
@@ -42,6 +49,9 @@ import policy  # noqa: E402
 import rundir  # noqa: E402
 from world_model import mlp  # noqa: E402
 
+TD = dict(gamma=0.99, tau=0.95, n=10, slow_rate=0.02, lr=3e-4)  # td: discount (HILP), expectile (HILP), steps before bootstrapping, slow copy's EMA rate (ours), Adam
+PHI_DIM = 64  # td: phi's output (ours; HILP: 32)
+GOAL_SHARES = (0.2, 0.5, 0.3)  # td: goals the current frame's, a later one of its episode, any frame of the batch (HILP's)
 READINGS = {"eq7": {}, "window100": dict(window=100), "expectile": dict(tau=0.1), "hilbert": dict(hilbert=True), "td": dict(td=True)}
 
 
@@ -111,22 +121,69 @@ def fit(x, g, window=50, tau=0.5, hilbert=False, td=False, updates=3000, batch=1
     return d
 
 
+class TDReading(torch.nn.Module):
+    """The td reading's d on embedded observations: (1 - gamma) ||phi(a) - phi(b)||, V = -d / (1 - gamma) in steps."""
+
+    def __init__(self, dim, units=128, layers=4):
+        super().__init__()
+        self.dim, self.net = dim, mlp(dim, units, PHI_DIM, layers)
+
+    def distance(self, a, b):
+        return (self.net(a) - self.net(b)).norm(dim=-1) * (1 - TD["gamma"])
+
+    def forward(self, a, b):
+        a, b = torch.broadcast_tensors(a, b)
+        return self.distance(a.reshape(-1, self.dim), b.reshape(-1, self.dim)).reshape(a.shape[:-1])
+
+
+def td_loss(d, slow, x, goals, is_first, num, generator=None, n=TD["n"]):
+    """The td reading's loss (module docstring; HILP's value learning): x (B, T, E) embedded states, goals a list of
+    (B, T, E) embedded goals of the same frames (the posterior's, the goal encoder's), is_first (B, T), num steps drawn
+    -> (loss, metrics); slow the slow copy for the targets."""
+    (B, T, _), gamma, tau = x.shape, TD["gamma"], TD["tau"]
+    draw = lambda high: torch.randint(high, (num,), generator=generator).to(x.device)  # noqa: E731
+    index = torch.arange(T, device=x.device).expand(B, T)
+    start_after = torch.where(is_first, index, T).flip(1).cummin(1).values.flip(1)  # (B, T): the first episode start at or after t
+    end = torch.cat([start_after[:, 1:], torch.full_like(start_after[:, :1], T)], 1) - 1  # the last step of t's episode in its segment
+    b, t = draw(B), draw(T)
+    keep = t < end[b, t]  # a step after t to bootstrap from
+    b, t, end = b[keep], t[keep], end[b[keep], t[keep]]
+    k = len(b)
+    kind = torch.bucketize(torch.rand(k, generator=generator), torch.tensor(GOAL_SHARES).cumsum(0)[:-1]).to(x.device)  # 0 current, 1 later, 2 any
+    uniform = torch.rand(k, generator=generator).clamp_min(torch.finfo(torch.float32).tiny)  # rand's 0: an infinite gap
+    gap = (torch.log(uniform) / math.log(gamma)).floor().long().to(x.device) + 1  # geometric, mean 1 / (1 - gamma)
+    later = torch.minimum(t + gap, end)
+    goal_b, goal_t = torch.where(kind == 2, draw(B)[:k], b), torch.where(kind == 0, t, torch.where(kind == 1, later, draw(T)[:k]))
+    which = torch.randint(len(goals), (k,), generator=generator).to(x.device)
+    goal = torch.stack([g[goal_b, goal_t] for g in goals])[which, torch.arange(k, device=x.device)]
+    steps = torch.minimum(torch.full_like(t, n), end - t)  # along the data, then the slow value
+    reached = (kind == 1) & (later - t <= steps)  # a goal of the same episode met within them ends the sum
+    steps = torch.where(reached, later - t, steps)
+    scale = 1 - gamma
+    with torch.no_grad():
+        tail = torch.where(reached, 0.0, slow.distance(x[b, t + steps], goal) / scale)
+        target = torch.where(kind == 0, 0.0, -(1 - gamma**steps) / scale - gamma**steps * tail)
+    value = -d.distance(x[b, t], goal) / scale
+    u = target - value
+    loss = (torch.where(u < 0, 1 - tau, tau) * u**2).mean()
+    return loss, {"dist_loss": loss.item(), "dist_value": value.mean().item()}
+
+
 def fit_td(x, g, updates, batch, units=128, seed=0):
-    """The `td` reading (module docstring) on whole episodes (x, g) (E, L, O): distance.td_loss, as train.py fits it
-    with --dist-reading td, here on the frozen models' reading of D_body. Returns the distance.DistanceNet."""
+    """The `td` reading (module docstring) on whole episodes (x, g) (E, L, O), the frozen models' reading of D_body.
+    Returns the TDReading."""
     torch.manual_seed(seed)
     rng = torch.Generator().manual_seed(seed)
-    cfg = configs.DistanceConfig(units=units, input="feat", reading="td")  # input: x and g come embedded already
-    d, slow = (distance.DistanceNet(cfg, x.shape[-1]) for _ in range(2))
+    d, slow = (TDReading(x.shape[-1], units) for _ in range(2))
     slow.load_state_dict(d.state_dict())
-    opt = torch.optim.Adam(d.parameters(), cfg.lr)
+    opt = torch.optim.Adam(d.parameters(), TD["lr"])
     is_first = torch.zeros(x.shape[:2], dtype=torch.bool)
     for _ in range(updates):
-        loss, _ = distance.td_loss(d, slow, x, [g, x], is_first, batch, rng)
+        loss, _ = td_loss(d, slow, x, [g, x], is_first, batch, rng)
         opt.zero_grad()
         loss.backward()
         opt.step()
-        policy.ema_update(slow, d, cfg.slow_rate)
+        policy.ema_update(slow, d, TD["slow_rate"])
     return d
 
 

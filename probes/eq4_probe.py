@@ -24,7 +24,7 @@ benchmark (evaluate.goal_reaching) and the imagined minus real -d on the benchma
 and appends one row to --out. Run from the repository root:
 
     python probes/eq4_probe.py agents/walker [--updates 3000] [--horizon 5 --starts 1024] [--critic-real] [--seed 0]
-    python probes/eq4_probe.py runs/walker_td_s0 --from-clone --bc-anneal 1.0 0.1 --updates 2000 --horizon 5 --starts 1024 [--no-eq4]
+    python probes/eq4_probe.py agents/walker --from-clone --bc-anneal 1.0 0.1 --updates 2000 --horizon 5 --starts 1024 --distance td [--no-eq4]
     python probes/eq4_probe.py --summary docs/results/eq4_probe_walker.jsonl
 """
 import argparse

@@ -5,14 +5,12 @@ import os
 import shutil
 import subprocess
 import sys
-from unittest import mock
 
 import numpy as np
 import pytest
 import torch
 
 import checkpoint
-import cloning
 import configs
 import evaluate
 import video_encoder
@@ -221,26 +219,6 @@ def test_retrieval_scorers_rank_a_noisy_copy_of_a_demo_first():
         assert int(np.argmax(scorer(body, body[:, -1], demo, demo[:, -1]))) == 3, name
 
 
-def test_filter_polish_keeps_the_steps_of_highest_advantage_and_all_of_them_is_the_plain_clone():
-    """probes/filter_polish.py: --keep 1 is cloning.bc_loss to the bit (same relabelling draws); --keep 0.5 clones the
-    half of the steps whose advantage under the td value is highest."""
-    import distance
-    import policy
-    filter_polish = probe_script("filter_polish")
-    dist_net = distance.DistanceNet(configs.DistanceConfig(reading="td", input="feat"), 6)
-    actor = policy.Actor(configs.ActorCriticConfig(units=16), 6, 6, 2)
-    post, goal_feat, final = torch.randn(3, 8, 6), torch.randn(3, 8, 6), torch.randn(3, 6)
-    action = torch.rand(3, 8, 2) * 2 - 1
-    torch.manual_seed(0)
-    plain = cloning.bc_loss(actor, post, goal_feat, action, final, 0.5)[0]
-    torch.manual_seed(0)
-    assert torch.equal(filter_polish.filtered_bc_loss(dist_net, 1.0, [])(actor, post, goal_feat, action, final, 0.5)[0], plain)
-    seen = {}
-    with mock.patch.object(actor, "log_prob", lambda f, g, a: seen.setdefault("n", len(f)) * torch.zeros(len(f))):
-        filter_polish.filtered_bc_loss(dist_net, 0.5, [])(actor, post, goal_feat, action, final, 0.5)
-    assert seen["n"] == 3 * 7 // 2 + 1  # 21 steps, the top half by quantile (ties aside)
-
-
 def test_neighbour_objective_scores_a_goal_by_the_episodes_that_ended_nearest_it():
     """probes/neighbour_objective.py: a goal reads the mean score of the k D_body episodes whose final goals lie
     nearest it, so the goal beside the best episode's end ranks first."""
@@ -342,82 +320,3 @@ def test_reward_probe_scores_saved_actors_in_the_real_body_and_in_imagination(sm
     lines = [line.split("|") for line in out.stdout.splitlines() if "|" in line][1:]
     assert [line[0].strip() for line in lines] == ["phase-1 policy, demo 0's zero-shot goal"] + [f"GenRL seed {s} after {GENRL_SMOKE.steps} updates" for s in (0, 1)]
     assert all(-1 <= float(x) <= 1 for line in lines for x in line[2:])  # max-cosine rewards
-
-
-def test_distance_probe_readings_on_a_body_at_rest_and_one_that_moves():
-    """A body at rest for its first half, then moving steadily: every pair in the rest looks alike. Eq. 7's squared
-    error gives such a pair its mean gap; the expectile reading the shortest (lower); the Hilbert reading is 0 at
-    equal states by construction and rises with the gap where the body moves."""
-    probe = probe_script("distance_probe")
-    L = 60
-    ramp = torch.cat([torch.zeros(L // 2), torch.linspace(0, 3, L // 2)])
-    x = ramp[None, :, None].expand(8, L, 2) + torch.arange(8.0)[:, None, None] * 10  # (E, L, 2): an offset per episode
-    fitted = {name: probe.fit(x, x, window=20, updates=200, batch=8, pairs=128, units=32, **kw) for name, kw in probe.READINGS.items() if name != "window100"}
-    with torch.no_grad():
-        rest = {name: d(x[:, 5], x[:, 20]).mean().item() for name, d in fitted.items()}
-        moving = [fitted["hilbert"](x[:, 35], x[:, 35 + k]).mean().item() for k in (0, 5, 15)]
-    assert rest["expectile"] < rest["eq7"] - 0.05, rest
-    assert moving[0] == 0.0 and moving[0] < moving[1] < moving[2], moving
-
-
-def test_distance_probe_td_reading_ranks_another_episodes_goal_by_the_steps_to_it():
-    """Episodes that move along one line from different starting points: a state of one episode is never paired with
-    another's by Eq. 6, and Eq. 7 labels every such pair 1. The td reading bootstraps along the transitions, so from
-    episode 3 the distance to a frame of episode 0 rises with the steps between their positions, and is 0 at itself."""
-    probe = probe_script("distance_probe")
-    L = 40
-    x = (torch.arange(8.0)[:, None] * 0.5 + torch.linspace(0, 3, L))[..., None]  # (E, L, 1): episode e from 0.5 e
-    d = probe.fit_td(x, x, updates=400, batch=256, units=32)
-    goal = x[0, 35]  # position 2.69; episode 3 passes it at step 15
-    with torch.no_grad():
-        rising = [d(x[3, t], goal).item() for t in (13, 9, 5, 1)]
-        assert d(goal, goal).item() == 0.0
-    assert rising == sorted(rising) and rising[-1] > rising[0] + 0.02, rising
-
-
-def test_eq4_probe_critic_on_real_sequences_regresses_to_the_lambda_returns():
-    """probes/eq4_probe.py's repval: with d = 1 everywhere and a slow critic of 0, a 3-step real segment's returns are
-    G_1 = -1, G_0 = -1 - gamma lambda (G_2 = v_2 = 0), and a critic of 0 has the loss 0.5 mean(G^2)."""
-    probe = probe_script("eq4_probe")
-    cfg = type("Config", (), {"gamma": 0.9, "lambda_": 0.5})
-    zero = lambda feat, goal: torch.zeros(feat.shape[:-1])
-    dist_net = lambda feat, goal: torch.ones(feat.shape[:-1])
-    loss = probe.real_critic_loss(zero, zero, dist_net, torch.randn(2, 3, 4), torch.randn(2, 4), cfg)
-    assert loss.item() == pytest.approx(0.5 * ((-1 - 0.45) ** 2 + 1) / 2)
-
-
-def test_eq4_probe_trains_a_fresh_actor_and_leaves_the_world_model_frozen(smoke_run, tmp_path):
-    """On the smoke run: a row with the guard's settings, its log and the benchmark; the run's checkpoint untouched."""
-    before = open(os.path.join(smoke_run, "checkpoint.pt"), "rb").read()
-    out = str(tmp_path / "rows.jsonl")
-    result = subprocess.run([sys.executable, "probes/eq4_probe.py", smoke_run, "--updates", "2", "--log-every", "1", "--horizon", "3",
-                             "--starts", "16", "--critic-real", "--distance", "td", "--distance-updates", "2", "--episodes", "1",
-                             "--eval-steps", "10", "--out", out],
-                            cwd=ROOT, capture_output=True, text=True, env={**os.environ, "MUJOCO_GL": "egl"})
-    assert result.returncode == 0, result.stderr[-2000:]
-    row = json.loads(open(out).read())
-    assert (row["horizon"], row["starts"], row["critic_real"], row["distance"], row["updates"]) == (3, 16, True, "td", 2)
-    assert [r["step"] for r in row["log"]] == [1, 2] and len(row["log"][0]["reward_reachable"]) == 3
-    assert set(row["scores"]) == {"stand", "walk", "run"} and np.isfinite(row["gap"])
-    assert open(os.path.join(smoke_run, "checkpoint.pt"), "rb").read() == before
-    summary = subprocess.run([sys.executable, "probes/eq4_probe.py", "--summary", out], cwd=ROOT, capture_output=True, text=True)
-    assert f"| {smoke_run} | fresh | td | 3 | 16 | yes | 2 | 1 | {row['average']:.1f} | - | {row['gap']:.3f} |" in summary.stdout
-
-
-def test_eq4_probe_from_the_clone_without_updates_scores_the_runs_own_benchmark(smoke_run, tmp_path):
-    """--from-clone keeps the run's actor: with 0 updates its benchmark on the run's own settings is the run's own,
-    episode for episode (the pairing --summary reads); the cloning's weight anneals linearly from FIRST to LAST."""
-    probe = probe_script("eq4_probe")
-    assert [probe.bc_weight((1.0, 0.1), k, 4) for k in range(4)] == pytest.approx([1.0, 0.7, 0.4, 0.1])
-    assert probe.bc_weight(None, 3, 4) == 0.0
-    alone = subprocess.run([sys.executable, "probes/eq4_probe.py", smoke_run, "--no-eq4"], cwd=ROOT, capture_output=True, text=True)
-    assert alone.returncode == 2 and "--no-eq4 leaves the cloning alone: it goes with --from-clone and --bc-anneal" in alone.stderr
-    out = str(tmp_path / "rows.jsonl")
-    result = subprocess.run([sys.executable, "probes/eq4_probe.py", smoke_run, "--from-clone", "--bc-anneal", "1", "0.1", "--updates", "0",
-                             "--episodes", "1", "--eval-steps", "10", "--out", out],
-                            cwd=ROOT, capture_output=True, text=True, env={**os.environ, "MUJOCO_GL": "egl"})
-    assert result.returncode == 0, result.stderr[-2000:]
-    row = json.loads(open(out).read())
-    assert row["from_clone"] and row["bc_anneal"] == [1.0, 0.1] and row["average"] == pytest.approx(row["start_average"], abs=1e-9)
-    summary = subprocess.run([sys.executable, "probes/eq4_probe.py", "--summary", out], cwd=ROOT, capture_output=True, text=True)
-    assert f"| {smoke_run} | clone, bc 1 -> 0.1 | run | " in summary.stdout and "| 0.0 |" in summary.stdout

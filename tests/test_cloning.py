@@ -1,4 +1,4 @@
-"""cloning.py: hindsight cloning's loss against torch.distributions; the td reading's phi, a distance in steps."""
+"""cloning.py: hindsight cloning's loss against torch.distributions."""
 import pytest
 import torch
 from torch.distributions import Normal, TanhTransform, TransformedDistribution
@@ -38,11 +38,3 @@ def test_bc_loss_is_tanh_gaussian_nll_of_dataset_actions():
     logp_final = lambda t: TransformedDistribution(Normal(*actor.distribution(feat[:, t], final_goal)), [TanhTransform()]).log_prob(action[:, t + 1]).sum(-1)
     assert loss.item() == pytest.approx(-(logp_final(0).sum() + logp_final(1).sum()).item() / (2 * B), rel=1e-4)
 
-
-def test_td_phi_is_the_distance_in_steps():
-    """DistanceNet.phi: d(s, g) = (1 - gamma) ||phi(s) - phi(g)||, the td reading's value in steps."""
-    import distance as D
-    cfg = configs.DistanceConfig(units=16, layers=2, input="feat", reading="td")
-    net = D.DistanceNet(cfg, 6)
-    s, g = torch.randn(4, 3, 6), torch.randn(4, 3, 6)
-    assert torch.allclose(net(s, g), (1 - cfg.gamma) * (net.phi(s) - net.phi(g)).norm(dim=-1), atol=1e-6)

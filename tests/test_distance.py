@@ -4,7 +4,7 @@ import torch
 
 import configs
 from configs import DistanceConfig
-from distance import DistanceNet, distance_loss, sample_pairs, td_loss
+from distance import DistanceNet, distance_loss, sample_pairs
 
 torch.set_num_threads(1)
 
@@ -156,48 +156,3 @@ def test_obs_input_reads_the_decoded_observation_and_leaves_the_decoder_to_the_w
     distance_loss(dist_net, feat, pairs, 4, 0.1, feat.flip(0))[0].backward()
     assert all(p.grad is None for p in wm.parameters())  # Eq. 7 never trains the world model's decoder
 
-
-def test_td_loss_bootstraps_inside_an_episode_and_targets_the_discounted_steps():
-    """distance.td_loss on segments that cross an episode start: every target reads a state of the same episode part
-    1 to n steps later; and with d = 0 everywhere but the slow copy at d (1 - gamma) = 1, i.e. V' = -1 / (1 - gamma)
-    (100 steps), a value of 0 meets its targets -(1 - gamma^m) / (1 - gamma) - gamma^m 100 (or 0) with the expectile."""
-    B, T = 4, 30
-    is_first = torch.zeros(B, T, dtype=torch.bool)
-    is_first[:, 0] = is_first[1, 12] = is_first[2, 20] = True
-    part, t = is_first.long().cumsum(1).float(), torch.arange(T).float().expand(B, T)
-    x = torch.stack([part + 10 * torch.arange(B)[:, None], t], -1)  # (B, T, 2): which episode part, which step
-    cfg = DistanceConfig(reading="td", input="feat", td_n=5)
-    seen = []
-
-    class Zero:  # V = 0: d = 0, differentiable
-        def __init__(self):
-            self.cfg, self.w = cfg, torch.zeros((), requires_grad=True)
-
-        def distance(self, a, g):
-            seen.append(a)
-            return self.w * a[..., 0]
-
-    class Slow:
-        def distance(self, a, g):
-            seen.append(a)
-            return torch.full(a.shape[:-1], 1.0)
-
-    loss, metrics = td_loss(Zero(), Slow(), x, [x], is_first, 2000, torch.Generator().manual_seed(0))
-    later, now = seen  # the slow copy reads s_{t+m} first, then d reads s_t
-    assert torch.equal(later[:, 0], now[:, 0])  # the same episode part
-    steps = later[:, 1] - now[:, 1]
-    assert steps.min() >= 1 and steps.max() <= 5 and metrics["dist_value"] == 0.0
-    # targets below the value weigh 1 - tau = 0.05; a goal not met within the m steps: -(1 - g^m) / (1 - g) - g^m 100 =
-    # -100 exactly (the any-frame 30 %, most of the later-frame 50 %), the current frame's 0, one met within them ~ -m
-    assert 0.05 * 100**2 * 0.6 < loss.item() < 0.05 * 100**2 * 0.85
-
-
-def test_td_loss_survives_a_uniform_draw_of_exactly_zero(monkeypatch):
-    """torch.rand draws from [0, 1): a 0 once made the geometric gap log(0) / log(gamma) = inf, an index of -2^63 (a
-    phase-1 run stopped on it). Here every goal is a later frame (the first draw 0.5) at the gap of a draw of 0."""
-    x = torch.randn(2, 10, 3)
-    draws = iter([0.5, 0.0])
-    monkeypatch.setattr(torch, "rand", lambda n, generator=None: torch.full((n,), next(draws)))
-    net = DistanceNet(DistanceConfig(reading="td", input="feat", units=8, layers=2), 3)
-    loss, _ = td_loss(net, net, x, [x], torch.zeros(2, 10, dtype=torch.bool), 16)
-    assert torch.isfinite(loss)

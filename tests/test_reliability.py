@@ -97,21 +97,6 @@ def test_kill_then_resume_equals_an_uninterrupted_run(smoke_run, smoke_data, tmp
     assert [r["step"] for r in rows[0]] == [2, 4, 6] and rows[0] == rows[1]  # the killed run's rows past update 3 are not repeated
 
 
-def test_td_distance_killed_then_resumed_equals_an_uninterrupted_run(smoke_data, tmp_path):
-    """--dist-reading td adds a component, the slow copy of d that computes its targets: it resumes bit for bit too."""
-    runs = {name: str(tmp_path / name) for name in ("whole", "killed")}
-    flags = lambda name: ["--env", "walker", "--preset", "smoke", "--data", smoke_data, "--dist-reading", "td", "--run-dir", runs[name]]  # noqa: E731
-    whole = subprocess.run([sys.executable, "train.py"] + flags("whole"), cwd=ROOT, capture_output=True, text=True)
-    killed = subprocess.run([sys.executable, "-c", KILLED_TRAIN] + flags("killed"), cwd=ROOT, capture_output=True, text=True)
-    assert whole.returncode == 0 and killed.returncode == -signal.SIGKILL, (whole.stderr[-2000:], killed.stderr[-2000:])
-    resumed = subprocess.run([sys.executable, "train.py", "--resume"] + flags("killed"), cwd=ROOT, capture_output=True, text=True)
-    assert resumed.returncode == 0 and "resumed" in resumed.stdout, resumed.stderr[-2000:]
-    a, b = (torch.load(os.path.join(r, "checkpoint.pt"), weights_only=True)["models"] for r in runs.values())
-    assert "slow_dist" in a and set(a) == set(b)
-    assert all(torch.equal(a[name][key], b[name][key]) for name in a for key in a[name])
-    assert not all(torch.equal(a["slow_dist"][key], a["dist_net"][key]) for key in a["dist_net"])  # the copy trails d
-
-
 # --- 1. committed expert weights are overwritten only when a run asks for it by name ---
 
 @pytest.fixture
@@ -443,7 +428,7 @@ def test_older_pickled_checkpoint_is_named_and_never_unpickled(smoke_run, tmp_pa
     (lambda c: c["config"]["wm"].update(deter="x"), r"its config wm\.deter is 'x', not of type int$"),
     (lambda c: c["config"]["wm"].update(deter=-1), r"its config holds --wm-deter -1: must be >= 1$"),
     (lambda c: c["config"]["ac"].update(horizon=0), r"its config holds --ac-horizon 0: must be >= 1$"),
-    (lambda c: c["config"]["dist"].update(reading="bogus"), r"its config dist\.reading is 'bogus', not one of eq7, td$"),
+    (lambda c: c["config"]["dist"].update(input="bogus"), r"its config dist\.input is 'bogus', not one of obs, feat$"),
     (lambda c: c["config"]["wm"].update(obs="bogus"), r"its config wm\.obs is 'bogus', not one of state, pixels$"),
     (lambda c: c.update(p_dim=-5), r"its step \d+ or shapes \(observation \d+, action \d+, p -5\) are not counts"),
     (lambda c: c.update(obs_shape="x"), r"its step \d+ or shapes \(observation 'x', action"),
