@@ -150,6 +150,8 @@ def main():
     parser.add_argument("--episodes", type=int, default=3, help="benchmark episodes per demo goal (the benchmark's own: 3)")
     parser.add_argument("--eval-steps", type=int, default=envs.EPISODE_STEPS, help="steps of each benchmark episode")
     parser.add_argument("--log-every", type=int, default=250)
+    parser.add_argument("--data", help="D_body's folder for the starts, batches and fits (default the run's; an exported agent "
+                        "stores data/, e.g. agents/stickman was trained on data/late)")
     parser.add_argument("--out", help="append the row here (default docs/results/eq4_probe_<body>.jsonl)")
     args = parser.parse_args()
     if args.summary:
@@ -167,9 +169,10 @@ def main():
     # the run's own benchmark on the same start states, to pair with (its averaged tasks those scored here)
     start = {t: float(np.mean(s["policy"])) for t, s in evaluate.read_goal_reaching(args.run)["scores"].items()} if args.from_clone else None
     ac = cfgs["ac"] = dataclasses.replace(cfgs["ac"], horizon=args.horizon or cfgs["ac"].horizon, starts=args.starts or cfgs["ac"].starts)
-    _, data, _, _ = checkpoint.prepare_data(cfgs)
+    tc = dataclasses.replace(cfgs["train"], data=args.data or cfgs["train"].data)  # D_body's; the benchmark's demos stay the run's
+    _, data, _, _ = checkpoint.prepare_data({**cfgs, "train": tc})
     if args.distance != "run":
-        wm, tc = models["world_model"], cfgs["train"]
+        wm = models["world_model"]
         body = collect.load_folder(os.path.join(tc.data, tc.env), (wm.cfg.obs, "action", "is_first", "p"))
         x, g = distance_probe.embedded_episodes(models, [e for k, e in enumerate(body) if k % tc.holdout_every])
         updates = args.distance_updates or (20000 if args.distance == "td" else 3000)
@@ -183,7 +186,7 @@ def main():
     print(f"imagined minus real -d on the benchmark's episodes: {gap:.3f}")
     row = {"run": args.run, "weights_id": rundir.weights_id(ckpt), "horizon": ac.horizon, "starts": ac.starts, "critic_real": args.critic_real,
            "distance": args.distance, "from_clone": args.from_clone, "bc_anneal": args.bc_anneal, "eq4": not args.no_eq4,
-           "updates": args.updates, "seed": args.seed, "episodes": args.episodes, "gap": gap, "log": log,
+           "updates": args.updates, "seed": args.seed, "data": tc.data, "episodes": args.episodes, "gap": gap, "log": log,
            "scores": {t: float(np.mean(s["policy"])) for t, s in scores.items()},
            "average": float(np.mean([np.mean(s["policy"]) for s in scores.values()]))}
     if start:

@@ -55,17 +55,18 @@ def test_eq4_probe_critic_on_real_sequences_regresses_to_the_lambda_returns():
     assert loss.item() == pytest.approx(0.5 * ((-1 - 0.45) ** 2 + 1) / 2)
 
 
-def test_eq4_probe_trains_a_fresh_actor_and_leaves_the_world_model_frozen(smoke_run, tmp_path):
-    """On the smoke run: a row with the guard's settings, its log and the benchmark; the run's checkpoint untouched."""
+def test_eq4_probe_trains_a_fresh_actor_and_leaves_the_world_model_frozen(smoke_run, smoke_data, tmp_path):
+    """On the smoke run, D_body named by --data: a row with the guard's settings, its data, its log and the benchmark;
+    the run's checkpoint untouched."""
     before = open(os.path.join(smoke_run, "checkpoint.pt"), "rb").read()
     out = str(tmp_path / "rows.jsonl")
     result = subprocess.run([sys.executable, "probes/eq4_probe.py", smoke_run, "--updates", "2", "--log-every", "1", "--horizon", "3",
                              "--starts", "16", "--critic-real", "--distance", "td", "--distance-updates", "2", "--episodes", "1",
-                             "--eval-steps", "10", "--out", out],
+                             "--eval-steps", "10", "--data", smoke_data, "--out", out],
                             cwd=ROOT, capture_output=True, text=True, env={**os.environ, "MUJOCO_GL": "egl"})
     assert result.returncode == 0, result.stderr[-2000:]
     row = json.loads(open(out).read())
-    assert (row["horizon"], row["starts"], row["critic_real"], row["distance"], row["updates"]) == (3, 16, True, "td", 2)
+    assert (row["horizon"], row["starts"], row["critic_real"], row["distance"], row["updates"], row["data"]) == (3, 16, True, "td", 2, smoke_data)
     assert [r["step"] for r in row["log"]] == [1, 2] and len(row["log"][0]["reward_reachable"]) == 3
     assert set(row["scores"]) == {"stand", "walk", "run"} and np.isfinite(row["gap"])
     assert open(os.path.join(smoke_run, "checkpoint.pt"), "rb").read() == before
