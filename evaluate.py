@@ -371,7 +371,7 @@ def reachable_across_runs(run_dirs, last=5):
 
 def gradient_share(run_dirs, last=5):
     """grad_eq4 and grad_bc of each run's metrics.jsonl (train.py logs them where cloning is on: the L2 norms of the
-    gradients on the actor's parameters of Eq. 4's actor loss and of the weighted cloning loss, policy.gradient_norms),
+    gradients on the actor's parameters of Eq. 4's actor loss and of the weighted cloning loss, train.gradient_norms),
     the mean of its last `last` rows, then mean +- s.e. over the runs; [] when no run logged them."""
     norms = []
     for run_dir in run_dirs:

@@ -216,17 +216,6 @@ def actor_loss(returns, log_prob, return_norm, entropy_scale):  # Eq. 4
     return loss, {"actor_loss": loss.item(), "return": returns.mean().item(), "return_scale": scale.item(), "entropy": entropy.item()}
 
 
-def gradient_norms(module, **losses):
-    """{'grad_<name>': the L2 norm of d loss / d module's parameters} for each named loss, without touching .grad:
-    how much of the actor's update each term of its loss makes (train.py logs Eq. 4's against the cloning's)."""
-    params = [p for p in module.parameters() if p.requires_grad]
-    out = {}
-    for name, loss in losses.items():
-        grads = torch.autograd.grad(loss, params, retain_graph=True, allow_unused=True)
-        out["grad_" + name] = torch.sqrt(sum((g ** 2).sum() for g in grads if g is not None)).item()
-    return out
-
-
 def critic_loss(critic, feat, goal, returns):  # Eq. 4: V_eta trained with TD(lambda) targets
     """V(s_k, g) for k < H regressed to sg(G_k) (Dreamer V1: a unit Gaussian, 0.5 squared error):
     feat (N, H + 1, F), goal (N, G) or None, returns (N, H) -> (loss, metrics)."""

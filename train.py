@@ -52,6 +52,17 @@ def resolve_configs(args, preset):
     return out
 
 
+def gradient_norms(module, **losses):
+    """{'grad_<name>': the L2 norm of d loss / d module's parameters} for each named loss, without touching .grad:
+    how much of the actor's update each term of its loss makes (logged: Eq. 4's against the cloning's)."""
+    params = [p for p in module.parameters() if p.requires_grad]
+    out = {}
+    for name, loss in losses.items():
+        grads = torch.autograd.grad(loss, params, retain_graph=True, allow_unused=True)
+        out["grad_" + name] = torch.sqrt(sum((g ** 2).sum() for g in grads if g is not None)).item()
+    return out
+
+
 def log_line(m):
     """One line per log step, grouped by equation; the actor-critic's part only once it has started."""
     line = (f"{m['step']}: Eq.2 wm {m['wm_loss']:.2f} (recon {m['recon']:.2f} kl {m['kl']:.2f} open-loop {m['open_loop']:.3f}, "
@@ -163,7 +174,7 @@ def pretrain(cfgs, run_dir, resume):
             clone = lambda: cloning.bc_loss(actor, post_feat, goal_feat, batch["action"], final_goal, cc.bc_final)
             bc, m_bc = clone() if cc.bc else (0.0, {})
             if logged and cc.bc:  # Eq. 4's share of the actor's step against the cloning's (evaluate.gradient_share)
-                m4.update(policy.gradient_norms(actor, eq4=a_loss, bc=cc.bc * bc))
+                m4.update(gradient_norms(actor, eq4=a_loss, bc=cc.bc * bc))
             update("actor", a_loss + cc.bc * bc, "Eq. 4 actor loss")
             update("critic", c_loss, "Eq. 4 critic loss")
             policy.ema_update(slow_critic, critic, ac.slow_critic_rate)

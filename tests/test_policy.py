@@ -195,24 +195,6 @@ def test_return_norm_scale():
     assert norm(torch.linspace(0, 10, 101)).item() == pytest.approx(9.0, abs=1e-4)
 
 
-def test_gradient_norms_are_each_losss_own_and_leave_grad_untouched():
-    """gradient_norms: the L2 norm over all parameters of each loss's gradient, computed apart (the sum's is not the sum
-    of the norms), with .grad left as it was for the optimiser step that follows."""
-    lin = torch.nn.Linear(3, 2)
-    x = torch.randn(4, 3)
-    first, second = lin(x).sum(), (lin(x) ** 2).sum()
-    norms = P.gradient_norms(lin, first=first, second=second)
-    # d first / dW = 1 x (sum over rows of x) for each output, d first / db = (4, 4)
-    expected = torch.sqrt(2 * (x.sum(0) ** 2).sum() + 2 * 4.0**2)
-    assert norms["grad_first"] == pytest.approx(expected.item(), rel=1e-5)
-    y = lin(x).detach()
-    expected = torch.sqrt(((2 * y.T @ x) ** 2).sum() + ((2 * y.sum(0)) ** 2).sum())
-    assert norms["grad_second"] == pytest.approx(expected.item(), rel=1e-5)
-    assert lin.weight.grad is None and lin.bias.grad is None
-    (first + second).backward()  # the graphs were kept for the step itself
-    assert lin.weight.grad is not None
-
-
 class ToyWorld(torch.nn.Module):
     """A world whose latent state is a point in the plane that each action moves by 0.2 a: what imagine needs."""
 

@@ -269,3 +269,21 @@ def test_a_stored_config_with_a_deleted_switch_loads_at_its_off_value_and_is_ref
     pixels = train.resolve_configs(train_args(**{"wm.obs": "pixels"}), "smoke")  # the cpu recipe's d reads decoded state vectors
     with pytest.raises(ValueError, match="--dist-input obs reads decoded state vectors: with --obs pixels pass --dist-input feat"):
         checkpoint.build_models(pixels, (64, 64, 3), 6, 64, "cpu")
+
+
+def test_gradient_norms_are_each_losss_own_and_leave_grad_untouched():
+    """train.gradient_norms: the L2 norm over all parameters of each loss's gradient, computed apart (the sum's is not the sum
+    of the norms), with .grad left as it was for the optimiser step that follows."""
+    lin = torch.nn.Linear(3, 2)
+    x = torch.randn(4, 3)
+    first, second = lin(x).sum(), (lin(x) ** 2).sum()
+    norms = train.gradient_norms(lin, first=first, second=second)
+    # d first / dW = 1 x (sum over rows of x) for each output, d first / db = (4, 4)
+    expected = torch.sqrt(2 * (x.sum(0) ** 2).sum() + 2 * 4.0**2)
+    assert norms["grad_first"] == pytest.approx(expected.item(), rel=1e-5)
+    y = lin(x).detach()
+    expected = torch.sqrt(((2 * y.T @ x) ** 2).sum() + ((2 * y.sum(0)) ** 2).sum())
+    assert norms["grad_second"] == pytest.approx(expected.item(), rel=1e-5)
+    assert lin.weight.grad is None and lin.bias.grad is None
+    (first + second).backward()  # the graphs were kept for the step itself
+    assert lin.weight.grad is not None
