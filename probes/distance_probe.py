@@ -50,7 +50,7 @@ import rundir  # noqa: E402
 from world_model import mlp  # noqa: E402
 
 TD = dict(gamma=0.99, tau=0.95, n=10, slow_rate=0.02, lr=3e-4)  # td: discount (HILP), expectile (HILP), steps before bootstrapping, slow copy's EMA rate (ours), Adam
-PHI_DIM = 64  # td: phi's output (ours; HILP: 32)
+PHI_DIM = 64  # hilbert, td: phi's output (ours; HILP: 32)
 GOAL_SHARES = (0.2, 0.5, 0.3)  # td: goals the current frame's, a later one of its episode, any frame of the batch (HILP's)
 READINGS = {"eq7": {}, "window100": dict(window=100), "expectile": dict(tau=0.1), "hilbert": dict(hilbert=True), "td": dict(td=True)}
 
@@ -75,7 +75,7 @@ class Reading(torch.nn.Module):
     def __init__(self, dim, hilbert=False, units=128, layers=4):
         super().__init__()
         self.hilbert = hilbert
-        self.net = mlp(dim, units, 64, layers) if hilbert else mlp(2 * dim, units, 1, layers)
+        self.net = mlp(dim, units, PHI_DIM, layers) if hilbert else mlp(2 * dim, units, 1, layers)
 
     def forward(self, a, b):
         a, b = torch.broadcast_tensors(a, b)
@@ -121,12 +121,13 @@ def fit(x, g, window=50, tau=0.5, hilbert=False, td=False, updates=3000, batch=1
     return d
 
 
-class TDReading(torch.nn.Module):
-    """The td reading's d on embedded observations: (1 - gamma) ||phi(a) - phi(b)||, V = -d / (1 - gamma) in steps."""
+class TDReading(Reading):
+    """The td reading's d on embedded observations: (1 - gamma) ||phi(a) - phi(b)||, V = -d / (1 - gamma) in steps;
+    phi is the hilbert reading's network."""
 
     def __init__(self, dim, units=128, layers=4):
-        super().__init__()
-        self.dim, self.net = dim, mlp(dim, units, PHI_DIM, layers)
+        super().__init__(dim, hilbert=True, units=units, layers=layers)
+        self.dim = dim
 
     def distance(self, a, b):
         return (self.net(a) - self.net(b)).norm(dim=-1) * (1 - TD["gamma"])

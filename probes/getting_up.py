@@ -42,6 +42,7 @@ import fidelity  # noqa: E402
 import rundir  # noqa: E402
 
 LAST, UP = 100, 0.8  # "up at the end": mean posture over the last LAST steps >= UP
+LYING = 0.3  # on the ground: a getting-up event starts after 10 steps below it
 
 
 def row(name, posture, scores):
@@ -126,7 +127,7 @@ def getting_up_events(posture, before, after=20):
     for e, p in enumerate(posture):
         t = max(10, before)
         while t < len(p) - after:
-            up = np.flatnonzero(p[t : t + 60] >= UP) if (p[t - 10 : t] < 0.3).all() else []
+            up = np.flatnonzero(p[t : t + 60] >= UP) if (p[t - 10 : t] < LYING).all() else []
             if len(up) and t + up[0] + after < len(p):
                 events.append((e, t + up[0]))
                 t += up[0] + 100

@@ -34,9 +34,7 @@ import checkpoint  # noqa: E402
 import envs  # noqa: E402
 import evaluate  # noqa: E402
 import rundir  # noqa: E402
-
-UP, LAST = 0.8, 100  # probes/getting_up.py: up at posture >= UP; "up at the end": mean posture of the last LAST steps
-LYING = 0.3  # probes/getting_up.py's getting-up event starts below it: the body on the ground
+from probes.getting_up import LAST, LYING, UP  # noqa: E402
 
 
 def torso_posture(body, env):
@@ -121,12 +119,14 @@ def main():
     tc = cfgs["train"]
     per_goal = args.episodes or tc.eval_episodes
     variants = [("none", None, None)] + [(f"{rule} {up}", up, rule) for up in args.up_goals for rule in args.rules]
+    with torch.no_grad():  # D_body's label-free g_up, read once
+        data_goals = data_up_goals(models, cfgs).repeat_interleave(per_goal, 0) if "data" in args.up_goals else None
     base = {}
     for name, up, rule in tqdm(variants, desc="variants"):
         for task in args.tasks:
             with torch.no_grad():
                 if up == "data":
-                    g_up = data_up_goals(models, cfgs).repeat_interleave(per_goal, 0)
+                    g_up = data_goals
                 else:
                     g_up = evaluate.demo_goals(models, tc.env, up, tc.data, per_goal) if up else None
                 scores, up_end = episodes(models, cfgs, task, g_up, rule, per_goal)
