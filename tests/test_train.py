@@ -140,6 +140,13 @@ def test_command_line_runs_and_resumes(smoke_data, tmp_path):
     record = json.load(open(os.path.join(run, "goal_reaching_episodes2_steps10_seed30000.json")))
     assert all(len(s["policy"]) == 4 for s in record["scores"].values()) and record["settings"]["eval_episodes"] == 2  # 2 demos x 2
     assert json.load(open(os.path.join(run, "goal_reaching.json")))["settings"]["eval_episodes"] == 1
+    other = tmp_path / "other"  # other demos (--data): scored beside the run's own benchmark, named by their folder
+    shutil.copytree(os.path.join(smoke_data, "demos"), other / "demos")
+    kept = open(os.path.join(run, "goal_reaching.json")).read()
+    moved = subprocess.run(base + ["--evaluate", "--data", str(other)], cwd=cwd, capture_output=True, text=True)
+    assert moved.returncode == 0, moved.stderr[-2000:]
+    named = "goal_reaching_episodes1_steps10_seed30000_data-" + str(other).strip(os.sep).replace(os.sep, "-") + ".json"
+    assert os.path.exists(os.path.join(run, named)) and open(os.path.join(run, "goal_reaching.json")).read() == kept
     again = subprocess.run(base + ["--resume", "--steps", "8"], cwd=cwd, capture_output=True, text=True)
     assert again.returncode == 0 and "resumed" in again.stdout
     assert torch.load(os.path.join(run, "checkpoint.pt"), weights_only=True)["step"] == 8
