@@ -320,3 +320,28 @@ def test_reward_probe_scores_saved_actors_in_the_real_body_and_in_imagination(sm
     lines = [line.split("|") for line in out.stdout.splitlines() if "|" in line][1:]
     assert [line[0].strip() for line in lines] == ["phase-1 policy, demo 0's zero-shot goal"] + [f"GenRL seed {s} after {GENRL_SMOKE.steps} updates" for s in (0, 1)]
     assert all(-1 <= float(x) <= 1 for line in lines for x in line[2:])  # max-cosine rewards
+
+
+def test_data_lever_rows_read_the_records_of_each_demos_and_the_table_averages_seeds(smoke_run, smoke_data, tmp_path):
+    """probes/data_lever.py: a run's own benchmark and its record on other demos (train.py --evaluate --data's file) as
+    rows that name the demos' scores; the table lists each seed's per-task means, then their mean +- s.e."""
+    probe = probe_script("data_lever")
+    run, other = _copy(smoke_run, tmp_path, "run"), tmp_path / "other"
+    own = probe.row(run, "recipe")
+    assert own["scores"]["walk"] == evaluate.read_goal_reaching(run)["scores"]["walk"]["policy"] and own["seed"] == 0
+    with pytest.raises(FileNotFoundError, match=r"0 records of .* run `python train.py --evaluate --run-dir .* --data .*other`"):
+        probe.row(run, "recipe", str(other))
+    shutil.copytree(os.path.join(smoke_data, "demos"), other / "demos")
+    record = json.load(open(os.path.join(run, "goal_reaching.json")))
+    named = os.path.join(run, "goal_reaching_x_data-" + str(other).strip(os.sep).replace(os.sep, "-") + ".json")
+    json.dump(record, open(named, "w"))
+    assert probe.row(run, "recipe", str(other))["demos"] == str(other)
+    json.dump(dict(record, weights="1:0"), open(named, "w"))
+    with pytest.raises(ValueError, match="scores another agent than"):
+        probe.row(run, "recipe", str(other))
+    twin = dict(own, seed=1, scores={t: [x + 2 for x in s] for t, s in own["scores"].items()})
+    walk = float(np.mean(own["scores"]["walk"]))
+    lines = probe.table([own, twin])
+    name = f"recipe, {own['demos']} ({own['demo_scores']['run']:.0f})"
+    assert f"| {name} | 0 | " in lines[2] and f"| {name} | 1 | " in lines[3]
+    assert lines[4].split(" | ")[3] == f"{walk + 1:.1f} +- 1.0"  # two seeds 2 apart: s.e. 1
