@@ -55,7 +55,8 @@ def row(run_dir, recipe, demos=None):
 
 
 def table(rows):
-    """Per body and (recipe, demos): each seed's per-task means, then mean +- s.e. over seeds."""
+    """Per body and (recipe, demos): each seed's per-task means, their mean +- s.e. over seeds, and the difference to
+    the body's first group paired by seed."""
     lines = []
     for body in sorted({r["agent"] for r in rows}):
         lines += [f"| {body}: recipe, demos (their run score) | seed | " + " | ".join(envs.BODY_TASKS) + " | average |", "|---|---|" + "---|" * (len(envs.BODY_TASKS) + 1)]
@@ -63,14 +64,21 @@ def table(rows):
         for r in rows:
             if r["agent"] == body:
                 groups.setdefault(f"{r['recipe']}, {r['demos']} ({r['demo_scores']['run']:.0f})", []).append(r)
+        first = None  # {seed: its means} of the body's first group, which the others are paired with by seed
         for name, members in groups.items():
             means = np.array([[np.mean(m["scores"][t]) for t in envs.BODY_TASKS] for m in members])
-            means = np.concatenate([means, means.mean(1, keepdims=True)], 1)
-            for m, v in zip(members, means):
-                lines.append(f"| {name} | {m['seed']} | " + " | ".join(f"{x:.1f}" for x in v) + " |")
-            if len(members) > 1:
-                lines.append(f"| {name} | {len(members)} seeds | " + " | ".join(
-                    f"{c.mean():.1f} +- {stderr(c):.1f}" for c in means.T) + " |")
+            means = {m["seed"]: np.append(v, v.mean()) for m, v in zip(members, means)}
+            for seed, v in means.items():
+                lines.append(f"| {name} | {seed} | " + " | ".join(f"{x:.1f}" for x in v) + " |")
+            if len(means) > 1:
+                lines.append(f"| {name} | {len(means)} seeds | " + " | ".join(
+                    f"{c.mean():.1f} +- {stderr(c):.1f}" for c in np.array(list(means.values())).T) + " |")
+            if first is None:
+                first = means
+            elif set(means) & set(first):
+                paired = np.array([means[s] - first[s] for s in sorted(set(means) & set(first))])
+                lines.append(f"| {name} minus the first | {len(paired)} paired | " + " | ".join(
+                    f"{c.mean():+.1f}" + (f" +- {stderr(c):.1f}" if len(c) > 1 else "") for c in paired.T) + " |")
         lines.append("")
     return lines
 

@@ -345,3 +345,6 @@ def test_data_lever_rows_read_the_records_of_each_demos_and_the_table_averages_s
     name = f"recipe, {own['demos']} ({own['demo_scores']['run']:.0f})"
     assert f"| {name} | 0 | " in lines[2] and f"| {name} | 1 | " in lines[3]
     assert lines[4].split(" | ")[3] == f"{walk + 1:.1f} +- 1.0"  # two seeds 2 apart: s.e. 1
+    other = dict(twin, recipe="other", scores={t: [x + 3 for x in s] for t, s in own["scores"].items()})
+    lines = probe.table([own, twin, other])
+    assert lines[6].startswith(f"| other, {own['demos']}") and lines[6].split(" | ")[1:3] == ["1 paired", "+1.0"]  # seed 1: +3 - 2
