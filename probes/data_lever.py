@@ -4,6 +4,7 @@ the table by training seed.
 
 python probes/data_lever.py --add docs/results/data_lever.jsonl --recipe NAME [--demos DATA] RUN ...  # RUN's rows
 python probes/data_lever.py --summary docs/results/data_lever.jsonl
+python probes/data_lever.py --by-snapshot data/walker run   # D_body's run episodes by the expert snapshot they replay
 
 A run's own benchmark (goal_reaching.json) scores the demos under the data it trained on; `train.py --evaluate --data
 DATA` writes another demos' scores beside it (goal_reaching_<settings>_data-<DATA>.json), which --demos DATA reads.
@@ -32,6 +33,16 @@ def demo_scores(data, body):
         returns = [float(np.load(f)["return"]) for f in sorted(glob.glob(os.path.join(data, "demos", f"{body}_{task}_side", "*.npz")))]
         out[task] = float(envs.normalized_score(task, np.mean(returns)))
     return out
+
+
+def episodes_by_snapshot(folder, task):
+    """[(snapshot step, episodes, mean normalised score)] of a D_body folder's `task` episodes (collect.py: each replays
+    one snapshot of the expert's history with action noise), ascending by step."""
+    by = {}
+    for path in sorted(glob.glob(os.path.join(folder, f"{task}_*.npz"))):
+        episode = np.load(path)
+        by.setdefault(int(str(episode["source"]).rsplit("@", 1)[1]), []).append(float(envs.normalized_score(task, float(episode["return"]))))
+    return [(step, len(v), float(np.mean(v))) for step, v in sorted(by.items())]
 
 
 def row(run_dir, recipe, demos=None):
@@ -89,8 +100,14 @@ def main():
     parser.add_argument("--recipe", help="with --add: the label of these runs' recipe (the table groups by it)")
     parser.add_argument("--demos", default=None, help="with --add: the data folder whose demos were scored (default: each run's own)")
     parser.add_argument("--summary", metavar="ROWS", help="print the table of a rows file")
+    parser.add_argument("--by-snapshot", nargs=2, metavar=("FOLDER", "TASK"), help="the D_body folder's TASK episodes' mean score by "
+                        "the expert snapshot each replays, e.g. data/walker run")
     parser.add_argument("runs", nargs="*")
     args = parser.parse_args()
+    if args.by_snapshot:
+        print("| snapshot (training step) | episodes | mean normalised score |\n|---|---|---|")
+        print("\n".join(f"| {step // 1000}k | {n} | {score:.1f} |" for step, n, score in episodes_by_snapshot(*args.by_snapshot)))
+        return
     if bool(args.add) == bool(args.summary) or not (bool(args.runs) == bool(args.add) == bool(args.recipe)):
         parser.error("pass --add ROWS --recipe NAME with run folders, or --summary ROWS alone")
     if args.add:

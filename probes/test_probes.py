@@ -348,3 +348,12 @@ def test_data_lever_rows_read_the_records_of_each_demos_and_the_table_averages_s
     other = dict(twin, recipe="other", scores={t: [x + 3 for x in s] for t, s in own["scores"].items()})
     lines = probe.table([own, twin, other])
     assert lines[6].startswith(f"| other, {own['demos']}") and lines[6].split(" | ")[1:3] == ["1 paired", "+1.0"]  # seed 1: +3 - 2
+
+
+def test_data_lever_groups_task_episodes_by_the_snapshot_they_replay(tmp_path):
+    probe = probe_script("data_lever")
+    for k, (source, ret) in enumerate([("run@100000", 100.0), ("run@50000", 300.0), ("run@100000", 200.0)]):
+        np.savez(tmp_path / f"run_{k:04d}.npz", source=source, **{"return": ret})
+    np.savez(tmp_path / "walk_0000.npz", source="walk@50000", **{"return": 0.0})
+    score = lambda r: float(probe.envs.normalized_score("run", r))
+    assert probe.episodes_by_snapshot(str(tmp_path), "run") == [(50000, 1, score(300.0)), (100000, 2, (score(100.0) + score(200.0)) / 2)]
