@@ -52,7 +52,7 @@ class ExpertConfig:
     init_alpha: float = 0.1  # pytorch_sac on DMC
     snapshot_every: int = 50_000  # agent steps between history snapshots (100 episodes)
     eval_every: int = 10_000  # agent steps between 1-episode deterministic evaluations
-    checkpoint_minutes: float = 15.0  # wall-clock between full checkpoints (replay included)
+    checkpoint_minutes: float = 15.0  # wall-clock between full checkpoints (replay included); one at every snapshot too
     final_episodes: int = 10  # episodes that score each snapshot; the best becomes the final expert (keep_best)
     seed: int = 0
 
@@ -306,6 +306,8 @@ def train(body, tasks, cfg, ckpt_dir, resume, warm_start=(), replace_committed=F
             for k, task in enumerate(tasks):
                 save_actor_member(actor, k, body, task, expert_path(body, task, step), step)
             keep_best(actor, body, tasks, step, cfg.final_episodes)
+            save_checkpoint()  # a resume never starts before a written snapshot (it would write that step again, differently)
+            last_ckpt = time.time()
         if step % cfg.eval_every == 0:
             scores = [float(envs.normalized_score(t, r)) for t, r in zip(tasks, episode_returns(actor, eval_envs, 10_000 + step))]
             new = not os.path.exists(log_path)
@@ -315,7 +317,7 @@ def train(body, tasks, cfg, ckpt_dir, resume, warm_start=(), replace_committed=F
                     w.writerow(["step", "minutes", "critic_loss", "actor_loss"] + [f"score_{t}" for t in tasks] + [f"alpha_{t}" for t in tasks])
                 w.writerow([step, round((time.time() - t0) / 60, 1), round(losses[0], 4), round(losses[1], 4)] + [round(s, 1) for s in scores] + [round(a, 4) for a in log_alpha.exp().tolist()])
             bar.write(f"step {step}: score " + " ".join(f"{t} {s:.1f}" for t, s in zip(tasks, scores)))
-        if time.time() - last_ckpt > 60 * cfg.checkpoint_minutes or step == cfg.steps:
+        if time.time() - last_ckpt > 60 * cfg.checkpoint_minutes:
             save_checkpoint()
             last_ckpt = time.time()
     bar.close()

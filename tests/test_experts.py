@@ -72,6 +72,24 @@ def test_compact_state_resumes_tasks_in_any_order(expert_dir):
         experts.load_compact("walker", ["walk", "run"])
 
 
+def test_a_run_stopped_after_a_snapshot_resumes_from_it_not_before(expert_dir, monkeypatch):
+    """Killed between timed checkpoints: the compact state (what --resume --replace-committed starts from) is the last
+    snapshot's step, so a resume never writes a snapshot already written."""
+    calls = []
+
+    def stop_at_step_9(*args):
+        calls.append(1)
+        if len(calls) == 5:  # updates run from step seed_steps = 4 on: the fifth is step 9
+            raise KeyboardInterrupt
+        return update(*args)
+
+    update = experts.sac_update
+    monkeypatch.setattr(experts, "sac_update", stop_at_step_9)
+    with pytest.raises(KeyboardInterrupt):
+        experts.train("walker", ["stand"], experts.ExpertConfig(**{**TINY, "snapshot_every": 6, "checkpoint_minutes": 1e9}), str(expert_dir / "c"), resume=False)
+    assert experts.history_steps("walker", "stand") == [6] and experts.load_compact("walker", ["stand"])["step"] == 6
+
+
 def test_final_expert_is_the_best_snapshot(expert_dir):
     torch.manual_seed(0)
     actor = experts.Actor(1, 24, 6, 8)
