@@ -250,8 +250,8 @@ BENCHMARK = ("eval_episodes", "eval_steps", "eval_seed")  # the TrainConfig fiel
 
 def write_goal_reaching(run_dir, scores, tc, weights, name="goal_reaching.json"):
     """runs/<name>/goal_reaching.json: the scores, with the agent that made them (body, preset, rundir.weights_id)
-    and the benchmark's settings."""
-    record = {"agent": tc.env, "preset": tc.preset, "weights": weights, "settings": {k: getattr(tc, k) for k in BENCHMARK}, "scores": scores}
+    and the benchmark's settings, and the data folder whose demos were its goals."""
+    record = {"agent": tc.env, "preset": tc.preset, "weights": weights, "settings": {k: getattr(tc, k) for k in BENCHMARK}, "data": tc.data, "scores": scores}
     path = os.path.join(run_dir, name)
     rundir.atomic_write(path, lambda f: f.write(json.dumps(record).encode()))
     return path

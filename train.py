@@ -230,9 +230,9 @@ def main():
         data = getattr(args, "train.data") or run_cfgs["train"].data  # the demos under the run's own data, unless --data names others
         # the run's own benchmark is goal_reaching.json; one with other settings or demos is written beside it, named by
         # them, and the kept one stays (what evaluate.py compares across seeds)
-        own = asked == {k: getattr(run_cfgs["train"], k) for k in evaluate.BENCHMARK} and data == run_cfgs["train"].data
-        name = "goal_reaching.json" if own else "goal_reaching_" + "_".join(f"{k.removeprefix('eval_')}{v}" for k, v in asked.items()) + \
-            ("" if data == run_cfgs["train"].data else "_data-" + os.path.normpath(data).strip(os.sep).replace(os.sep, "-")) + ".json"
+        tag = "" if data == run_cfgs["train"].data else "_data-" + os.path.normpath(data).strip(os.sep).replace(os.sep, "-")
+        own = asked == {k: getattr(run_cfgs["train"], k) for k in evaluate.BENCHMARK} and not tag
+        name = "goal_reaching.json" if own else "goal_reaching_" + "_".join(f"{k.removeprefix('eval_')}{v}" for k, v in asked.items()) + tag + ".json"
         run_cfgs["train"] = dataclasses.replace(run_cfgs["train"], **asked, data=data)
         report_goal_reaching(run_dir, models, run_cfgs, device, name)
     else:

@@ -7,7 +7,8 @@ python probes/data_lever.py --summary docs/results/data_lever.jsonl
 python probes/data_lever.py --by-snapshot data/walker run   # D_body's run episodes by the expert snapshot they replay
 
 A run's own benchmark (goal_reaching.json) scores the demos under the data it trained on; `train.py --evaluate --data
-DATA` writes another demos' scores beside it (goal_reaching_<settings>_data-<DATA>.json), which --demos DATA reads.
+DATA` writes another demos' scores beside it (goal_reaching_<settings>_data-<DATA>.json, naming DATA), which --demos
+DATA reads.
 A row names its recipe (a label), run, training seed, D_body folder, demos folder with each task's demo score (the
 mean normalised return of its side-view demos: which experts made them) and weights; a record of weights the run no
 longer holds is refused (the run was trained since). The table groups rows by (recipe, demos), a column per task.
@@ -52,14 +53,14 @@ def row(run_dir, recipe, demos=None):
     if demos is None or os.path.normpath(demos) == os.path.normpath(own):
         record, demos = read_goal_reaching(run_dir), own
     else:
-        tag = os.path.normpath(demos).strip(os.sep).replace(os.sep, "-")  # train.py --evaluate's name for other demos
-        found = glob.glob(os.path.join(rundir.work_path(run_dir), f"goal_reaching_*_data-{tag}.json"))
+        records = [json.load(open(p)) for p in glob.glob(os.path.join(rundir.work_path(run_dir), "goal_reaching_*.json"))]
+        found = [r for r in records if os.path.normpath(r.get("data", "")) == os.path.normpath(demos)]  # the demos it scored
         if len(found) != 1:
             raise FileNotFoundError(f"{len(found)} records of {run_dir} on the demos under {demos}: run `python train.py --evaluate "
                                     f"--run-dir {run_dir} --data {demos}` (once per benchmark setting)")
-        record = json.load(open(found[0]))
+        record = found[0]
         if record["weights"] != read_goal_reaching(run_dir)["weights"]:
-            raise ValueError(f"{found[0]} scores another agent than {run_dir} holds: evaluate it again")
+            raise ValueError(f"the record on {demos} scores another agent than {run_dir} holds: evaluate it again")
     return {"recipe": recipe, "run": run_dir, "agent": record["agent"], "seed": config["seed"], "d_body": os.path.normpath(ckpt.get("trained_data", own)),
             "demos": os.path.normpath(demos), "demo_scores": demo_scores(demos, record["agent"]), "weights": record["weights"], "settings": record["settings"],
             "scores": {t: s["policy"] for t, s in record["scores"].items()}}

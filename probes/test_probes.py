@@ -334,9 +334,9 @@ def test_data_lever_rows_read_the_records_of_each_demos_and_the_table_averages_s
     shutil.copytree(os.path.join(smoke_data, "demos"), other / "demos")
     record = json.load(open(os.path.join(run, "goal_reaching.json")))
     named = os.path.join(run, "goal_reaching_x_data-" + str(other).strip(os.sep).replace(os.sep, "-") + ".json")
-    json.dump(record, open(named, "w"))
+    json.dump(dict(record, data=str(other)), open(named, "w"))
     assert probe.row(run, "recipe", str(other))["demos"] == str(other)
-    json.dump(dict(record, weights="1:0"), open(named, "w"))
+    json.dump(dict(record, data=str(other), weights="1:0"), open(named, "w"))
     with pytest.raises(ValueError, match="scores another agent than"):
         probe.row(run, "recipe", str(other))
     twin = dict(own, seed=1, scores={t: [x + 2 for x in s] for t, s in own["scores"].items()})
