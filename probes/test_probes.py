@@ -357,3 +357,29 @@ def test_data_lever_groups_task_episodes_by_the_snapshot_they_replay(tmp_path):
     np.savez(tmp_path / "walk_0000.npz", source="walk@50000", **{"return": 0.0})
     score = lambda r: float(probe.envs.normalized_score("run", r))
     assert probe.episodes_by_snapshot(str(tmp_path), "run") == [(50000, 1, score(300.0)), (100000, 2, (score(100.0) + score(200.0)) / 2)]
+
+
+def test_acting_value_is_plain_acting_at_one_candidate_and_picks_the_best_imagined_return(smoke_run):
+    """probes/acting_value.py: K = 1 acts as the benchmark, return for return; with K = 4 the action taken scores at
+    least the actor's mean by the imagined goal return, and differs from it somewhere; while down only, the mean where up."""
+    import envs
+
+    probe = probe_script("acting_value")
+    cfgs, models, ckpt = checkpoint.load_run(smoke_run)
+    with torch.no_grad():
+        goals = models["goal_vae"].goal(torch.randn(3, ckpt["p_dim"]))
+        make = lambda: [envs.make_env("walker", "walk") for _ in range(3)]
+        plain, _ = evaluate.run_episodes(make(), models, goals, 10, "state", 3)
+        one = probe.Chooser(models, 1, 3, 0.99)
+        assert np.array_equal(evaluate.run_episodes(make(), {**models, "actor": one}, goals, 10, "state", 3, on_state=one.on_state)[0], plain)
+        chooser, states = probe.Chooser(models, 4, 3, 0.99), []
+        evaluate.run_episodes(make(), models, goals, 5, "state", 3, on_state=states.append)
+        chooser.on_state(states[-1])
+        feat = models["world_model"].feat(states[-1])
+        taken, mean = chooser.act(feat, goals), models["actor"].act(feat, goals)
+        keep = {k: states[-1][k] for k in models["world_model"].state_keys}
+        assert (chooser.scores(keep, goals, taken) >= chooser.scores(keep, goals, mean) - 1e-5).all()
+        assert not torch.allclose(taken, mean)
+        chooser.read_posture = lambda: np.array([0.9, 0.1, 0.9])  # the body up in episodes 0 and 2: the mean there
+        taken = chooser.act(feat, goals)
+        assert torch.equal(taken[[0, 2]], mean[[0, 2]])

@@ -1,0 +1,147 @@
+"""Does choosing among the policy's own actions by the imagined goal return, at acting time, reach goals better?
+
+A fifth lever on the frozen policy, one that trains nothing (docs/results.md, What limits the policy, measured): at
+every real step, K candidate first actions (the actor's mean, as it acts, and K - 1 samples of pi(a | s_t, g)) are
+each imagined H steps ahead on the world model's prior (the actor's mean after the first action, z_t the prior's
+mode) and scored with Eq. 4's own objective: sum_k gamma^(k-1) r^goal(s_k, g) + gamma^H V(s_H, g), r^goal = -d (Eq. 7)
+and V the run's critic. The real body takes the best candidate's first action (model-predictive control with a learned
+value, as TD-MPC; here the candidates are the clone's, so the choice stays within what the data shows). K = 1 is the
+benchmark's own acting, action for action. With --while-down the choice is made only while the body is down (posture
+below probes/getting_up.py's UP, read as probes/standing_subgoal.py reads it) and the actor's mean is taken once up:
+getting up is where a benchmark episode's luck lies, and d reads a pose, not a speed. Every variant on the benchmark's own start states and goals; each task's
+score minus plain acting is paired episode by episode.
+
+    python probes/acting_value.py agents/walker [--candidates 8] [--horizon 5 15] [--while-down] [--out rows.jsonl]
+    python probes/acting_value.py --table docs/results/acting_value.jsonl
+"""
+import argparse
+import os
+import sys
+
+import numpy as np
+import torch
+from tqdm import tqdm
+
+sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+import checkpoint  # noqa: E402
+import envs  # noqa: E402
+import evaluate  # noqa: E402
+import policy  # noqa: E402
+import rundir  # noqa: E402
+from probes.getting_up import UP  # noqa: E402
+from probes.standing_subgoal import torso_posture  # noqa: E402
+
+
+class Chooser:
+    """The frozen actor choosing its real action among K candidates by their imagined goal return (module docstring).
+    on_state(state) keeps the filtered state s_t that act(feat, goal) then plans from (evaluate.run_episodes calls them
+    in that order)."""
+
+    def __init__(self, models, candidates, horizon, gamma, read_posture=None):
+        self.wm, self.actor, self.dist_net, self.critic = (models[k] for k in ("world_model", "actor", "dist_net", "critic"))
+        self.K, self.H, self.gamma, self.state = candidates, horizon, gamma, None
+        self.read_posture = read_posture  # () -> (N,): choose only where it is below UP; None: at every step
+
+    def on_state(self, state):
+        self.state = state
+
+    def scores(self, state, goal, first):
+        """Imagined goal return of each first action: state dict of (M, .), goal (M, G), first (M, A) -> (M,)."""
+        wm, actor = self.wm, self.actor
+        state = wm.img_step(state, first, sample=False)
+        total, discount = torch.zeros(first.shape[0]), 1.0
+        for k in range(self.H):
+            feat = wm.feat(state)
+            total = total - discount * self.dist_net(feat, goal)  # r^goal(s_{k+1}, g) = -d on arrival
+            discount *= self.gamma
+            if k + 1 < self.H:
+                state = wm.img_step(state, actor.act(feat, goal), sample=False)
+        return total + discount * self.critic(wm.feat(state), goal)
+
+    def act(self, feat, goal):
+        mean, std = self.actor.distribution(feat, goal)
+        if self.K == 1:
+            return torch.tanh(mean)
+        N, A = mean.shape
+        u = mean[:, None] + std[:, None] * torch.randn(N, self.K, A)
+        u[:, 0] = mean  # candidate 0: the action plain acting takes
+        first = torch.tanh(u).reshape(N * self.K, A)
+        state = {k: v.repeat_interleave(self.K, 0) for k, v in self.state.items() if k in self.wm.state_keys}
+        best = self.scores(state, goal.repeat_interleave(self.K, 0), first).reshape(N, self.K).argmax(1)
+        if self.read_posture is not None:
+            best = torch.where(torch.as_tensor(self.read_posture() < UP), best, 0)
+        return first.reshape(N, self.K, A)[torch.arange(N), best]
+
+
+def episodes(models, cfgs, task, K, H, while_down):
+    """The benchmark's episodes of `task`, acting through a Chooser -> scores (E,)."""
+    tc, body = cfgs["train"], cfgs["train"].env
+    goals = evaluate.demo_goals(models, body, task, tc.data, tc.eval_episodes)
+    env_list = [envs.make_env(body, task) for _ in range(len(goals))]
+    read = (lambda: np.array([torso_posture(body, env) for env in env_list])) if while_down else None
+    chooser = Chooser(models, K, H, cfgs["ac"].gamma, read)
+    returns, _ = evaluate.run_episodes(env_list, {**models, "actor": chooser}, goals, tc.eval_steps, cfgs["wm"].obs,
+                                       tc.eval_seed, on_state=chooser.on_state)
+    for env in env_list:
+        env.close()
+    return np.array([evaluate.episode_score(task, r, tc.eval_steps) for r in returns])
+
+
+def table(rows):
+    """Markdown: a line per agent and variant; each task's score (plain acting) or minus plain acting, paired by episode,
+    and their average (its s.e. from the tasks' independent episodes)."""
+    out = ["| agent | variant | " + " | ".join(envs.BODY_TASKS) + " | average |", "|---|---|" + "---|" * (len(envs.BODY_TASKS) + 1)]
+    for key in dict.fromkeys((r["run"], r["variant"]) for r in rows):
+        sel = {r["task"]: r for r in rows if (r["run"], r["variant"]) == key}  # a rerun's row replaces the earlier
+        if len(sel) < len(envs.BODY_TASKS):
+            out.append(f"| {key[0]} | {key[1]} | " + " | ".join("-" for _ in envs.BODY_TASKS) + " | incomplete |")
+            continue
+        sel = [sel[t] for t in envs.BODY_TASKS]
+        if key[1] == "K 1":
+            cells = [f"{r['score']:.1f}" for r in sel] + [f"{np.mean([r['score'] for r in sel]):.1f}"]
+        else:
+            mean, se = np.mean([r["minus_plain"] for r in sel]), np.sqrt(sum(r["minus_plain_se"] ** 2 for r in sel)) / len(sel)
+            cells = [f"{r['minus_plain']:+.1f} +- {r['minus_plain_se']:.1f}" for r in sel] + [f"**{mean:+.1f} +- {se:.1f}**"]
+        out.append(f"| {key[0]} | {key[1]} | " + " | ".join(cells) + " |")
+    return "\n".join(out)
+
+
+def main():
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0], allow_abbrev=False)
+    parser.add_argument("run", nargs="?", help="a trained run or shipped agent, e.g. agents/walker")
+    parser.add_argument("--table", nargs="+", help="print the table of these rows and stop")
+    parser.add_argument("--candidates", type=int, default=8, help="K: first actions scored per real step")
+    parser.add_argument("--horizon", type=int, nargs="+", default=[5], help="H: imagined steps per candidate")
+    parser.add_argument("--while-down", action="store_true", help="choose only while the body is down (module docstring)")
+    parser.add_argument("--tasks", nargs="+", default=list(envs.BODY_TASKS), choices=envs.BODY_TASKS)
+    parser.add_argument("--out", help="append a row per variant and task to this JSONL")
+    args = parser.parse_args()
+    if args.table:
+        print(table([r for path in args.table for r in rundir.read_jsonl(path)]))
+        return
+    if not args.run:
+        parser.error("give a run, e.g. agents/walker, or --table rows.jsonl")
+    if args.candidates < 2 or min(args.horizon) < 1:
+        parser.error(f"--candidates {args.candidates} --horizon {args.horizon}: give K >= 2 and H >= 1 (K = 1 is plain acting, always run)")
+    torch.set_num_threads(1)
+    rundir.fast_matmul()  # as train.py's benchmark computes, so that plain acting is the run's own, episode for episode
+    cfgs, models, ckpt = checkpoint.load_run(args.run)
+    down = ", while down" if args.while_down else ""
+    variants = [("K 1", 1, 1)] + [(f"K {args.candidates}, H {h}{down}", args.candidates, h) for h in args.horizon]
+    plain = {}
+    for name, K, H in tqdm(variants, desc="variants"):
+        for task in args.tasks:
+            with torch.no_grad():
+                scores = episodes(models, cfgs, task, K, H, args.while_down)
+            plain.setdefault(task, scores)
+            row = {"run": args.run, "weights": rundir.weights_id(ckpt), "variant": name, "task": task, "episodes": len(scores),
+                   "score": round(float(scores.mean()), 2), "se": round(float(evaluate.stderr(scores)), 2),
+                   "minus_plain": round(float((scores - plain[task]).mean()), 2),
+                   "minus_plain_se": round(float(evaluate.stderr(scores - plain[task])), 2)}
+            print(row, flush=True)
+            if args.out:
+                rundir.append_jsonl(args.out, row)
+
+
+if __name__ == "__main__":
+    main()
