@@ -2,16 +2,17 @@
 
 A fifth lever on the frozen policy, one that trains nothing (docs/results.md, What limits the policy, measured): at
 every real step, K candidate first actions (the actor's mean, as it acts, and K - 1 samples of pi(a | s_t, g)) are
-each imagined H steps ahead on the world model's prior (the actor's mean after the first action, z_t the prior's
-mode) and scored with Eq. 4's own objective: sum_k gamma^(k-1) r^goal(s_k, g) + gamma^H V(s_H, g), r^goal = -d (Eq. 7)
-and V the run's critic. The real body takes the best candidate's first action (model-predictive control with a learned
-value, as TD-MPC; here the candidates are the clone's, so the choice stays within what the data shows). K = 1 is the
-benchmark's own acting, action for action. With --while-down the choice is made only while the body is down (posture
-below probes/getting_up.py's UP, read as probes/standing_subgoal.py reads it) and the actor's mean is taken once up:
-getting up is where a benchmark episode's luck lies, and d reads a pose, not a speed. Every variant on the benchmark's own start states and goals; each task's
-score minus plain acting is paired episode by episode.
+each imagined H steps ahead on the world model's prior (the actor's mean after the first action, z_t the prior's mode)
+and scored with Eq. 4's own objective: sum_k gamma^(k-1) r^goal(s_k, g) + gamma^H V(s_H, g), r^goal = -d (Eq. 7) and V
+the run's critic. The real body takes the best candidate's first action (model-predictive control with a learned
+value, as TD-MPC, Hansen et al. 2022; here the candidates are the clone's, so the choice stays within what the data
+shows). K = 1 is the benchmark's own acting, action for action. With --while-down the choice is made only while the
+body is down (posture below probes/getting_up.py's UP, read as probes/standing_subgoal.py reads it) and the actor's
+mean is taken once up: getting up is where a benchmark episode's luck lies, and d reads a pose, not a speed. Every
+variant on the benchmark's own start states and goals; each task's score minus plain acting is paired episode by
+episode.
 
-    python probes/acting_value.py agents/walker [--candidates 8] [--horizon 5 15] [--while-down] [--out rows.jsonl]
+    python probes/acting_value.py agents/walker --while-down [--candidates 8] [--horizon 5 15] [--out rows.jsonl]   # ~5 min
     python probes/acting_value.py --table docs/results/acting_value.jsonl
 """
 import argparse
@@ -111,7 +112,7 @@ def main():
     parser.add_argument("run", nargs="?", help="a trained run or shipped agent, e.g. agents/walker")
     parser.add_argument("--table", nargs="+", help="print the table of these rows and stop")
     parser.add_argument("--candidates", type=int, default=8, help="K: first actions scored per real step")
-    parser.add_argument("--horizon", type=int, nargs="+", default=[5], help="H: imagined steps per candidate")
+    parser.add_argument("--horizon", type=int, nargs="+", default=[15], help="H: imagined steps per candidate (15: Eq. 4's horizon, chosen over 5)")
     parser.add_argument("--while-down", action="store_true", help="choose only while the body is down (module docstring)")
     parser.add_argument("--tasks", nargs="+", default=list(envs.BODY_TASKS), choices=envs.BODY_TASKS)
     parser.add_argument("--out", help="append a row per variant and task to this JSONL")
