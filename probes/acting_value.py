@@ -29,7 +29,7 @@ import envs  # noqa: E402
 import evaluate  # noqa: E402
 import policy  # noqa: E402
 import rundir  # noqa: E402
-from probes.getting_up import UP  # noqa: E402
+from probes.getting_up import LAST, UP  # noqa: E402
 from probes.standing_subgoal import torso_posture  # noqa: E402
 
 
@@ -38,10 +38,11 @@ class Chooser:
     on_state(state) keeps the filtered state s_t that act(feat, goal) then plans from (evaluate.run_episodes calls them
     in that order)."""
 
-    def __init__(self, models, candidates, horizon, gamma, read_posture=None):
+    def __init__(self, models, candidates, horizon, gamma, read_posture=None, while_down=False):
         self.wm, self.actor, self.dist_net, self.critic = (models[k] for k in ("world_model", "actor", "dist_net", "critic"))
         self.K, self.H, self.gamma, self.state = candidates, horizon, gamma, None
-        self.read_posture = read_posture  # () -> (N,): choose only where it is below UP; None: at every step
+        self.read_posture, self.while_down = read_posture, while_down  # read_posture() -> (N,); while_down: choose only below UP
+        self.posture = []  # (steps, N): the posture each action was chosen at, where read_posture is given
 
     def on_state(self, state):
         self.state = state
@@ -60,6 +61,9 @@ class Chooser:
         return total + discount * self.critic(wm.feat(state), goal)
 
     def act(self, feat, goal):
+        posture = None if self.read_posture is None else self.read_posture()
+        if posture is not None:
+            self.posture.append(posture)
         mean, std = self.actor.distribution(feat, goal)
         if self.K == 1:
             return torch.tanh(mean)
@@ -69,33 +73,34 @@ class Chooser:
         first = torch.tanh(u).reshape(N * self.K, A)
         state = {k: v.repeat_interleave(self.K, 0) for k, v in self.state.items() if k in self.wm.state_keys}
         best = self.scores(state, goal.repeat_interleave(self.K, 0), first).reshape(N, self.K).argmax(1)
-        if self.read_posture is not None:
-            best = torch.where(torch.as_tensor(self.read_posture() < UP), best, 0)
+        if self.while_down:
+            best = torch.where(torch.as_tensor(posture < UP), best, 0)
         return first.reshape(N, self.K, A)[torch.arange(N), best]
 
 
 def episodes(models, cfgs, task, K, H, while_down):
-    """The benchmark's episodes of `task`, acting through a Chooser -> scores (E,)."""
+    """The benchmark's episodes of `task`, acting through a Chooser -> scores (E,), up at the end (E,) (getting_up.py's rule)."""
     tc, body = cfgs["train"], cfgs["train"].env
     goals = evaluate.demo_goals(models, body, task, tc.data, tc.eval_episodes)
     env_list = [envs.make_env(body, task) for _ in range(len(goals))]
-    read = (lambda: np.array([torso_posture(body, env) for env in env_list])) if while_down else None
-    chooser = Chooser(models, K, H, cfgs["ac"].gamma, read)
+    read = lambda: np.array([torso_posture(body, env) for env in env_list])
+    chooser = Chooser(models, K, H, cfgs["ac"].gamma, read, while_down)
     returns, _ = evaluate.run_episodes(env_list, {**models, "actor": chooser}, goals, tc.eval_steps, cfgs["wm"].obs,
                                        tc.eval_seed, on_state=chooser.on_state)
     for env in env_list:
         env.close()
-    return np.array([evaluate.episode_score(task, r, tc.eval_steps) for r in returns])
+    return np.array([evaluate.episode_score(task, r, tc.eval_steps) for r in returns]), np.stack(chooser.posture)[-LAST:].mean(0) >= UP
 
 
 def table(rows):
     """Markdown: a line per agent and variant; each task's score (plain acting) or minus plain acting, paired by episode,
-    and their average (its s.e. from the tasks' independent episodes)."""
-    out = ["| agent | variant | " + " | ".join(envs.BODY_TASKS) + " | average |", "|---|---|" + "---|" * (len(envs.BODY_TASKS) + 1)]
+    their average (its s.e. from the tasks' independent episodes), and each task's share of episodes up at the end."""
+    out = ["| agent | variant | " + " | ".join(envs.BODY_TASKS) + " | average | up at the end (" + " / ".join(envs.BODY_TASKS) + ") |",
+           "|---|---|" + "---|" * (len(envs.BODY_TASKS) + 2)]
     for key in dict.fromkeys((r["run"], r["variant"]) for r in rows):
         sel = {r["task"]: r for r in rows if (r["run"], r["variant"]) == key}  # a rerun's row replaces the earlier
         if len(sel) < len(envs.BODY_TASKS):
-            out.append(f"| {key[0]} | {key[1]} | " + " | ".join("-" for _ in envs.BODY_TASKS) + " | incomplete |")
+            out.append(f"| {key[0]} | {key[1]} | " + " | ".join("-" for _ in envs.BODY_TASKS) + " | incomplete | - |")
             continue
         sel = [sel[t] for t in envs.BODY_TASKS]
         if key[1] == "K 1":
@@ -103,7 +108,8 @@ def table(rows):
         else:
             mean, se = np.mean([r["minus_plain"] for r in sel]), np.sqrt(sum(r["minus_plain_se"] ** 2 for r in sel)) / len(sel)
             cells = [f"{r['minus_plain']:+.1f} +- {r['minus_plain_se']:.1f}" for r in sel] + [f"**{mean:+.1f} +- {se:.1f}**"]
-        out.append(f"| {key[0]} | {key[1]} | " + " | ".join(cells) + " |")
+        up = " / ".join(f"{r['up_at_end']:.2f}" if "up_at_end" in r else "-" for r in sel)  # rows before it was read: -
+        out.append(f"| {key[0]} | {key[1]} | " + " | ".join(cells) + f" | {up} |")
     return "\n".join(out)
 
 
@@ -133,12 +139,12 @@ def main():
     for name, K, H in tqdm(variants, desc="variants"):
         for task in args.tasks:
             with torch.no_grad():
-                scores = episodes(models, cfgs, task, K, H, args.while_down)
+                scores, up_end = episodes(models, cfgs, task, K, H, args.while_down)
             plain.setdefault(task, scores)
             row = {"run": args.run, "weights": rundir.weights_id(ckpt), "variant": name, "task": task, "episodes": len(scores),
                    "score": round(float(scores.mean()), 2), "se": round(float(evaluate.stderr(scores)), 2),
                    "minus_plain": round(float((scores - plain[task]).mean()), 2),
-                   "minus_plain_se": round(float(evaluate.stderr(scores - plain[task])), 2)}
+                   "minus_plain_se": round(float(evaluate.stderr(scores - plain[task])), 2), "up_at_end": round(float(up_end.mean()), 3)}
             print(row, flush=True)
             if args.out:
                 rundir.append_jsonl(args.out, row)
