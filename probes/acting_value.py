@@ -12,7 +12,7 @@ mean is taken once up: getting up is where a benchmark episode's luck lies, and 
 variant on the benchmark's own start states and goals; each task's score minus plain acting is paired episode by
 episode.
 
-    python probes/acting_value.py agents/walker --while-down [--candidates 8] [--horizon 5 15] [--out rows.jsonl]   # ~5 min
+    python probes/acting_value.py agents/walker --while-down [--candidates 8] [--horizon 5 15] [--eval-seed 40000] [--out rows.jsonl]  # ~5 min
     python probes/acting_value.py --table docs/results/acting_value.jsonl
 """
 import argparse
@@ -78,7 +78,7 @@ class Chooser:
         return first.reshape(N, self.K, A)[torch.arange(N), best]
 
 
-def episodes(models, cfgs, task, K, H, while_down):
+def episodes(models, cfgs, task, K, H, while_down, seed):
     """The benchmark's episodes of `task`, acting through a Chooser -> scores (E,), up at the end (E,) (getting_up.py's rule)."""
     tc, body = cfgs["train"], cfgs["train"].env
     goals = evaluate.demo_goals(models, body, task, tc.data, tc.eval_episodes)
@@ -86,7 +86,7 @@ def episodes(models, cfgs, task, K, H, while_down):
     read = lambda: np.array([torso_posture(body, env) for env in env_list])
     chooser = Chooser(models, K, H, cfgs["ac"].gamma, read, while_down)
     returns, _ = evaluate.run_episodes(env_list, {**models, "actor": chooser}, goals, tc.eval_steps, cfgs["wm"].obs,
-                                       tc.eval_seed, on_state=chooser.on_state)
+                                       seed, on_state=chooser.on_state)
     for env in env_list:
         env.close()
     return np.array([evaluate.episode_score(task, r, tc.eval_steps) for r in returns]), np.stack(chooser.posture)[-LAST:].mean(0) >= UP
@@ -103,7 +103,7 @@ def table(rows):
             out.append(f"| {key[0]} | {key[1]} | " + " | ".join("-" for _ in envs.BODY_TASKS) + " | incomplete | - |")
             continue
         sel = [sel[t] for t in envs.BODY_TASKS]
-        if key[1] == "K 1":
+        if key[1].split(",")[0] == "K 1":  # plain acting
             cells = [f"{r['score']:.1f}" for r in sel] + [f"{np.mean([r['score'] for r in sel]):.1f}"]
         else:
             mean, se = np.mean([r["minus_plain"] for r in sel]), np.sqrt(sum(r["minus_plain_se"] ** 2 for r in sel)) / len(sel)
@@ -120,6 +120,8 @@ def main():
     parser.add_argument("--candidates", type=int, default=8, help="K: first actions scored per real step")
     parser.add_argument("--horizon", type=int, nargs="+", default=[15], help="H: imagined steps per candidate (15: Eq. 4's horizon, chosen over 5)")
     parser.add_argument("--while-down", action="store_true", help="choose only while the body is down (module docstring)")
+    parser.add_argument("--eval-seed", type=int, help="the episodes' first env seed (default: the run's benchmark's, 30000; "
+                        "40000: fresh start poses, to confirm a choice made on the benchmark's)")
     parser.add_argument("--tasks", nargs="+", default=list(envs.BODY_TASKS), choices=envs.BODY_TASKS)
     parser.add_argument("--out", help="append a row per variant and task to this JSONL")
     args = parser.parse_args()
@@ -133,15 +135,17 @@ def main():
     torch.set_num_threads(1)
     rundir.fast_matmul()  # as train.py's benchmark computes, so that plain acting is the run's own, episode for episode
     cfgs, models, ckpt = checkpoint.load_run(args.run)
+    seed = cfgs["train"].eval_seed if args.eval_seed is None else args.eval_seed
     down = ", while down" if args.while_down else ""
-    variants = [("K 1", 1, 1)] + [(f"K {args.candidates}, H {h}{down}", args.candidates, h) for h in args.horizon]
+    fresh = "" if args.eval_seed is None else f", seed {seed}"
+    variants = [(f"K 1{fresh}", 1, 1)] + [(f"K {args.candidates}, H {h}{down}{fresh}", args.candidates, h) for h in args.horizon]
     plain = {}
     for name, K, H in tqdm(variants, desc="variants"):
         for task in args.tasks:
             with torch.no_grad():
-                scores, up_end = episodes(models, cfgs, task, K, H, args.while_down)
+                scores, up_end = episodes(models, cfgs, task, K, H, args.while_down, seed)
             plain.setdefault(task, scores)
-            row = {"run": args.run, "weights": rundir.weights_id(ckpt), "variant": name, "task": task, "episodes": len(scores),
+            row = {"run": args.run, "weights": rundir.weights_id(ckpt), "variant": name, "task": task, "episodes": len(scores), "eval_seed": seed,
                    "score": round(float(scores.mean()), 2), "se": round(float(evaluate.stderr(scores)), 2),
                    "minus_plain": round(float((scores - plain[task]).mean()), 2),
                    "minus_plain_se": round(float(evaluate.stderr(scores - plain[task])), 2), "up_at_end": round(float(up_end.mean()), 3)}
