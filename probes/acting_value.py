@@ -27,7 +27,6 @@ sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 import checkpoint  # noqa: E402
 import envs  # noqa: E402
 import evaluate  # noqa: E402
-import policy  # noqa: E402
 import rundir  # noqa: E402
 from probes.getting_up import LAST, UP  # noqa: E402
 from probes.standing_subgoal import torso_posture  # noqa: E402
@@ -61,21 +60,21 @@ class Chooser:
         return total + discount * self.critic(wm.feat(state), goal)
 
     def act(self, feat, goal):
-        posture = None if self.read_posture is None else self.read_posture()
-        if posture is not None:
-            self.posture.append(posture)
+        if self.read_posture is not None:
+            self.posture.append(self.read_posture())
         mean, std = self.actor.distribution(feat, goal)
         if self.K == 1:
             return torch.tanh(mean)
         N, A = mean.shape
-        u = mean[:, None] + std[:, None] * torch.randn(N, self.K, A)
+        u = mean[:, None] + std[:, None] * torch.randn(N, self.K, A)  # drawn for every episode: the same draws whoever chooses
         u[:, 0] = mean  # candidate 0: the action plain acting takes
-        first = torch.tanh(u).reshape(N * self.K, A)
-        state = {k: v.repeat_interleave(self.K, 0) for k, v in self.state.items() if k in self.wm.state_keys}
-        best = self.scores(state, goal.repeat_interleave(self.K, 0), first).reshape(N, self.K).argmax(1)
-        if self.while_down:
-            best = torch.where(torch.as_tensor(posture < UP), best, 0)
-        return first.reshape(N, self.K, A)[torch.arange(N), best]
+        first = torch.tanh(u)
+        choose = torch.as_tensor(self.posture[-1] < UP) if self.while_down else torch.ones(N, dtype=torch.bool)
+        if choose.any():  # only the episodes that choose imagine their candidates
+            state = {k: v[choose].repeat_interleave(self.K, 0) for k, v in self.state.items() if k in self.wm.state_keys}
+            scores = self.scores(state, goal[choose].repeat_interleave(self.K, 0), first[choose].flatten(0, 1))
+            first[choose, 0] = first[choose, scores.reshape(-1, self.K).argmax(1)]
+        return first[:, 0]
 
 
 def episodes(models, cfgs, task, K, H, while_down, seed):
