@@ -10,10 +10,12 @@ shows). K = 1 is the benchmark's own acting, action for action. With --while-dow
 body is down (posture below probes/getting_up.py's UP, read as probes/standing_subgoal.py reads it) and the actor's
 mean is taken once up: getting up is where a benchmark episode's luck lies, and d reads a pose, not a speed. Every
 variant on the benchmark's own start states and goals; each task's score minus plain acting is paired episode by
-episode.
+episode. With --giil-zs the same variants act in the tables' GIIL-ZS cells instead (every setting x task, each demo's
+zero-shot goal on runner.imitate's evaluation seeds; plain acting there reproduces the committed GIIL-ZS rows).
 
     python probes/acting_value.py agents/walker --while-down [--candidates 8] [--horizon 5 15] [--eval-seed 40000] [--out rows.jsonl]  # ~5 min
-    python probes/acting_value.py --table docs/results/acting_value.jsonl
+    python probes/acting_value.py agents/walker --while-down --giil-zs [--settings SE-SV] [--out rows.jsonl]  # ~40 min
+    python probes/acting_value.py --table docs/results/acting_value.jsonl   # or the --giil-zs rows
 """
 import argparse
 import os
@@ -25,9 +27,12 @@ from tqdm import tqdm
 
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 import checkpoint  # noqa: E402
+import collect  # noqa: E402
+import configs  # noqa: E402
 import envs  # noqa: E402
 import evaluate  # noqa: E402
 import rundir  # noqa: E402
+import runner  # noqa: E402
 from probes.getting_up import LAST, UP  # noqa: E402
 from probes.standing_subgoal import torso_posture  # noqa: E402
 
@@ -77,18 +82,37 @@ class Chooser:
         return first[:, 0]
 
 
-def episodes(models, cfgs, task, K, H, while_down, seed):
-    """The benchmark's episodes of `task`, acting through a Chooser -> scores (E,), up at the end (E,) (getting_up.py's rule)."""
-    tc, body = cfgs["train"], cfgs["train"].env
-    goals = evaluate.demo_goals(models, body, task, tc.data, tc.eval_episodes)
+def act_through(models, cfgs, task, goals, seed, steps, K, H, while_down):
+    """One episode of `steps` per goal of `task` from env seeds seed, seed + 1, ..., acting through a Chooser -> scores
+    (N,), up at the end (N,) (getting_up.py's rule)."""
+    body = cfgs["train"].env
     env_list = [envs.make_env(body, task) for _ in range(len(goals))]
     read = lambda: np.array([torso_posture(body, env) for env in env_list])
     chooser = Chooser(models, K, H, cfgs["ac"].gamma, read, while_down)
-    returns, _ = evaluate.run_episodes(env_list, {**models, "actor": chooser}, goals, tc.eval_steps, cfgs["wm"].obs,
-                                       seed, on_state=chooser.on_state)
+    returns, _ = evaluate.run_episodes(env_list, {**models, "actor": chooser}, goals, steps, cfgs["wm"].obs, seed,
+                                       on_state=chooser.on_state)
     for env in env_list:
         env.close()
-    return np.array([evaluate.episode_score(task, r, tc.eval_steps) for r in returns]), np.stack(chooser.posture)[-LAST:].mean(0) >= UP
+    return np.array([evaluate.episode_score(task, r, steps) for r in returns]), np.stack(chooser.posture)[-LAST:].mean(0) >= UP
+
+
+def episodes(models, cfgs, task, K, H, while_down, seed):
+    """The benchmark's episodes of `task` -> scores (E,), up at the end (E,)."""
+    tc = cfgs["train"]
+    goals = evaluate.demo_goals(models, tc.env, task, tc.data, tc.eval_episodes)
+    return act_through(models, cfgs, task, goals, seed, tc.eval_steps, K, H, while_down)
+
+
+def zero_shot_cell(models, cfgs, task, where, K, H, while_down, seed):
+    """The tables' GIIL-ZS cell `where` of `task` as runner.imitate evaluates it: g = q(s | p_T) of each demo k,
+    ImitateConfig's eval_episodes each from env seeds seed + 100 k + e (runner.EVAL_SEED: the tables' own) -> scores, up
+    at the end (demos x episodes,). With K = 1 and the tables' seed they are the committed GIIL-ZS rows' episode_scores."""
+    demo, view = envs.demo_of(cfgs["train"].env, task, where)
+    demos = collect.load_folder(checkpoint.demo_folder(cfgs, demo, view), ("p",))
+    ic = configs.ImitateConfig()
+    out = [act_through(models, cfgs, task, models["goal_vae"].goal(torch.as_tensor(d["p"][-1]))[None].expand(ic.eval_episodes, -1),
+                       seed + 100 * k, ic.eval_steps, K, H, while_down) for k, d in enumerate(demos)]
+    return np.concatenate([o[0] for o in out]), np.concatenate([o[1] for o in out])
 
 
 def table(rows):
@@ -102,13 +126,34 @@ def table(rows):
             out.append(f"| {key[0]} | {key[1]} | " + " | ".join("-" for _ in envs.BODY_TASKS) + " | incomplete | - |")
             continue
         sel = [sel[t] for t in envs.BODY_TASKS]
-        if key[1].split(",")[0] == "K 1":  # plain acting
-            cells = [f"{r['score']:.1f}" for r in sel] + [f"{np.mean([r['score'] for r in sel]):.1f}"]
-        else:
-            mean, se = np.mean([r["minus_plain"] for r in sel]), np.sqrt(sum(r["minus_plain_se"] ** 2 for r in sel)) / len(sel)
-            cells = [f"{r['minus_plain']:+.1f} +- {r['minus_plain_se']:.1f}" for r in sel] + [f"**{mean:+.1f} +- {se:.1f}**"]
+        plain = key[1].split(",")[0] == "K 1"  # plain acting
+        cells = [average([r], plain) for r in sel] + [average(sel, plain) if plain else f"**{average(sel, plain)}**"]
         up = " / ".join(f"{r['up_at_end']:.2f}" if "up_at_end" in r else "-" for r in sel)  # rows before it was read: -
         out.append(f"| {key[0]} | {key[1]} | " + " | ".join(cells) + f" | {up} |")
+    return "\n".join(out)
+
+
+def average(sel, plain):
+    """One cell of a table over the rows `sel`: plain acting's mean score, or the mean of the rows' differences to
+    plain acting with the s.e. of their independent episodes; '-' where a row is missing."""
+    if any(r is None for r in sel):
+        return "-"
+    if plain:
+        return f"{np.mean([r['score'] for r in sel]):.1f}"
+    return f"{np.mean([r['minus_plain'] for r in sel]):+.1f} +- {np.sqrt(sum(r['minus_plain_se'] ** 2 for r in sel)) / len(sel):.1f}"
+
+
+def zero_shot_table(rows):
+    """Markdown for --giil-zs rows: a line per agent and variant; each setting's average over its tasks, the cross
+    settings' (w/o SE-SV, as the tables show it) and each task's over the settings."""
+    groups = [(w, [(t, w) for t in envs.TASKS]) for w in envs.SETTINGS]
+    groups += [("w/o SE-SV", [(t, w) for w in envs.SETTINGS if w != "SE-SV" for t in envs.TASKS])]
+    groups += [(t, [(t, w) for w in envs.SETTINGS]) for t in envs.TASKS]
+    out = ["| agent | variant | " + " | ".join(name for name, _ in groups) + " |", "|---|---|" + "---|" * len(groups)]
+    for key in dict.fromkeys((r["run"], r["variant"]) for r in rows):
+        sel = {(r["task"], r["setting"]): r for r in rows if (r["run"], r["variant"]) == key}  # a rerun's row replaces the earlier
+        cells = [average([sel.get(c) for c in members], key[1].split(",")[0] == "K 1") for _, members in groups]
+        out.append(f"| {key[0]} | {key[1]} | " + " | ".join(cells) + " |")
     return "\n".join(out)
 
 
@@ -121,11 +166,14 @@ def main():
     parser.add_argument("--while-down", action="store_true", help="choose only while the body is down (module docstring)")
     parser.add_argument("--eval-seed", type=int, help="the episodes' first env seed (default: the run's benchmark's, 30000; "
                         "40000: fresh start poses, to confirm a choice made on the benchmark's)")
-    parser.add_argument("--tasks", nargs="+", default=list(envs.BODY_TASKS), choices=envs.BODY_TASKS)
+    parser.add_argument("--giil-zs", action="store_true", help="the tables' GIIL-ZS cells instead of the benchmark (zero_shot_cell)")
+    parser.add_argument("--settings", nargs="+", default=list(envs.SETTINGS), choices=envs.SETTINGS, help="with --giil-zs")
+    parser.add_argument("--tasks", nargs="+", choices=envs.TASKS, help="default: the benchmark's (stand, walk, run); with --giil-zs all four")
     parser.add_argument("--out", help="append a row per variant and task to this JSONL")
     args = parser.parse_args()
     if args.table:
-        print(table([r for path in args.table for r in rundir.read_jsonl(path)]))
+        rows = [r for path in args.table for r in rundir.read_jsonl(path)]
+        print(zero_shot_table(rows) if rows and "setting" in rows[0] else table(rows))
         return
     if not args.run:
         parser.error("give a run, e.g. agents/walker, or --table rows.jsonl")
@@ -138,16 +186,25 @@ def main():
     down = ", while down" if args.while_down else ""
     fresh = "" if args.eval_seed is None else f", seed {seed}"
     variants = [(f"K 1{fresh}", 1, 1)] + [(f"K {args.candidates}, H {h}{down}{fresh}", args.candidates, h) for h in args.horizon]
+    if args.giil_zs:
+        seed = runner.EVAL_SEED if args.eval_seed is None else args.eval_seed
+        cells = [c for c in envs.cells(cfgs["train"].env) if c[0] in (args.tasks or envs.TASKS) and c[1] in args.settings]
+    else:
+        cells = [(task, None) for task in args.tasks or envs.BODY_TASKS]
     plain = {}
     for name, K, H in tqdm(variants, desc="variants"):
-        for task in args.tasks:
+        for task, where in cells:
             with torch.no_grad():
-                scores, up_end = episodes(models, cfgs, task, K, H, args.while_down, seed)
-            plain.setdefault(task, scores)
-            row = {"run": args.run, "weights": rundir.weights_id(ckpt), "variant": name, "task": task, "episodes": len(scores), "eval_seed": seed,
-                   "score": round(float(scores.mean()), 2), "se": round(float(evaluate.stderr(scores)), 2),
-                   "minus_plain": round(float((scores - plain[task]).mean()), 2),
-                   "minus_plain_se": round(float(evaluate.stderr(scores - plain[task])), 2), "up_at_end": round(float(up_end.mean()), 3)}
+                if where:
+                    scores, up_end = zero_shot_cell(models, cfgs, task, where, K, H, args.while_down, seed)
+                else:
+                    scores, up_end = episodes(models, cfgs, task, K, H, args.while_down, seed)
+            plain.setdefault((task, where), scores)
+            minus = scores - plain[task, where]
+            row = {"run": args.run, "weights": rundir.weights_id(ckpt), "variant": name, **({"setting": where} if where else {}),
+                   "task": task, "episodes": len(scores), "eval_seed": seed, "score": round(float(scores.mean()), 2),
+                   "se": round(float(evaluate.stderr(scores)), 2), "minus_plain": round(float(minus.mean()), 2),
+                   "minus_plain_se": round(float(evaluate.stderr(minus)), 2), "up_at_end": round(float(up_end.mean()), 3)}
             print(row, flush=True)
             if args.out:
                 rundir.append_jsonl(args.out, row)

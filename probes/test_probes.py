@@ -398,3 +398,19 @@ def test_acting_value_table_averages_the_tasks_and_marks_an_unfinished_variant()
     assert lines[2] == "| a | K 1 | 60.0 | 90.0 | 30.0 | 60.0 | 0.50 / 0.50 / 0.50 |"
     assert lines[3] == "| a | K 8, H 15 | +9.0 +- 3.0 | +0.0 +- 3.0 | -3.0 +- 3.0 | **+2.0 +- 1.7** | 0.50 / 0.50 / 0.50 |"
     assert lines[4] == "| a | K 8, H 5 | - | - | - | incomplete | - |"
+
+
+def test_acting_value_zero_shot_table_averages_settings_cross_settings_and_tasks():
+    """probes/acting_value.py --table on --giil-zs rows: each setting over its tasks, w/o SE-SV over the 12 cross
+    cells, each task over the four settings; a missing cell leaves its groups '-'."""
+    import envs
+
+    probe = probe_script("acting_value")
+    row = lambda variant, task, where, score, minus: {"run": "a", "variant": variant, "task": task, "setting": where,
+                                                      "score": score, "minus_plain": minus, "minus_plain_se": 2.0}
+    rows = [row("K 1", t, w, 10 * i, 0) for i, w in enumerate(envs.SETTINGS) for t in envs.TASKS]
+    rows += [row("K 8", t, w, 0, 4 if w == "CE-SV" else 0) for w in envs.SETTINGS for t in envs.TASKS if (t, w) != ("jump", "SE-SV")]
+    lines = probe.zero_shot_table(rows).splitlines()
+    assert lines[0] == "| agent | variant | SE-SV | SE-CV | CE-SV | CE-CV | w/o SE-SV | stand | walk | run | jump |"
+    assert lines[2] == "| a | K 1 | 0.0 | 10.0 | 20.0 | 30.0 | 20.0 | 15.0 | 15.0 | 15.0 | 15.0 |"
+    assert lines[3] == "| a | K 8 | - | +0.0 +- 1.0 | +4.0 +- 1.0 | +0.0 +- 1.0 | +1.3 +- 0.6 | +1.0 +- 1.0 | +1.0 +- 1.0 | +1.0 +- 1.0 | - |"
