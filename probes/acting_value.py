@@ -34,6 +34,7 @@ import evaluate  # noqa: E402
 import rundir  # noqa: E402
 import runner  # noqa: E402
 from probes.getting_up import LAST, UP  # noqa: E402
+from probes.goal_variance import split  # noqa: E402
 from probes.standing_subgoal import torso_posture  # noqa: E402
 
 
@@ -117,19 +118,22 @@ def zero_shot_cell(models, cfgs, task, where, K, H, while_down, seed):
 
 def table(rows):
     """Markdown: a line per agent and variant; each task's score (plain acting) or minus plain acting, paired by episode,
-    their average (its s.e. from the tasks' independent episodes), and each task's share of episodes up at the end."""
-    out = ["| agent | variant | " + " | ".join(envs.BODY_TASKS) + " | average | up at the end (" + " / ".join(envs.BODY_TASKS) + ") |",
-           "|---|---|" + "---|" * (len(envs.BODY_TASKS) + 2)]
+    their average (its s.e. from the tasks' independent episodes), each task's share of episodes up at the end and its
+    episode s.d. within a goal (the issue's luck, goal_variance.split)."""
+    tasks = " / ".join(envs.BODY_TASKS)
+    out = ["| agent | variant | " + " | ".join(envs.BODY_TASKS) + f" | average | up at the end ({tasks}) | episode s.d. ({tasks}) |",
+           "|---|---|" + "---|" * (len(envs.BODY_TASKS) + 3)]
     for key in dict.fromkeys((r["run"], r["variant"]) for r in rows):
         sel = {r["task"]: r for r in rows if (r["run"], r["variant"]) == key}  # a rerun's row replaces the earlier
         if len(sel) < len(envs.BODY_TASKS):
-            out.append(f"| {key[0]} | {key[1]} | " + " | ".join("-" for _ in envs.BODY_TASKS) + " | incomplete | - |")
+            out.append(f"| {key[0]} | {key[1]} | " + " | ".join("-" for _ in envs.BODY_TASKS) + " | incomplete | - | - |")
             continue
         sel = [sel[t] for t in envs.BODY_TASKS]
         plain = key[1].split(",")[0] == "K 1"  # plain acting
         cells = [average([r], plain) for r in sel] + [average(sel, plain) if plain else f"**{average(sel, plain)}**"]
         up = " / ".join(f"{r['up_at_end']:.2f}" if "up_at_end" in r else "-" for r in sel)  # rows before it was read: -
-        out.append(f"| {key[0]} | {key[1]} | " + " | ".join(cells) + f" | {up} |")
+        sd = " / ".join(f"{r['episode_sd']:.1f}" if "episode_sd" in r else "-" for r in sel)
+        out.append(f"| {key[0]} | {key[1]} | " + " | ".join(cells) + f" | {up} | {sd} |")
     return "\n".join(out)
 
 
@@ -201,10 +205,12 @@ def main():
                     scores, up_end = episodes(models, cfgs, task, K, H, args.while_down, seed)
             plain.setdefault((task, where), scores)
             minus = scores - plain[task, where]
+            per_goal = (configs.ImitateConfig() if where else cfgs["train"]).eval_episodes  # episodes of a goal lie side by side
             row = {"run": args.run, "weights": rundir.weights_id(ckpt), "variant": name, **({"setting": where} if where else {}),
                    "task": task, "episodes": len(scores), "eval_seed": seed, "score": round(float(scores.mean()), 2),
                    "se": round(float(evaluate.stderr(scores)), 2), "minus_plain": round(float(minus.mean()), 2),
-                   "minus_plain_se": round(float(evaluate.stderr(minus)), 2), "up_at_end": round(float(up_end.mean()), 3)}
+                   "minus_plain_se": round(float(evaluate.stderr(minus)), 2), "up_at_end": round(float(up_end.mean()), 3),
+                   "episode_sd": round(split(scores.reshape(-1, per_goal))[1], 2)}  # within a goal (goal_variance.split)
             print(row, flush=True)
             if args.out:
                 rundir.append_jsonl(args.out, row)

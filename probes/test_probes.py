@@ -387,17 +387,19 @@ def test_acting_value_is_plain_acting_at_one_candidate_and_picks_the_best_imagin
 
 def test_acting_value_table_averages_the_tasks_and_marks_an_unfinished_variant():
     """probes/acting_value.py --table: plain acting's scores, a variant's paired differences and their average with
-    the s.e. of independent tasks, the share up at the end where a row has it; a variant missing a task is incomplete."""
+    the s.e. of independent tasks, the share up at the end and the episode s.d. where a row has them; a variant
+    missing a task is incomplete."""
     probe = probe_script("acting_value")
     row = lambda variant, task, score, minus, se: {"run": "a", "variant": variant, "task": task, "score": score,
                                                    "minus_plain": minus, "minus_plain_se": se, "up_at_end": 0.5}
     rows = [row("K 1", t, s, 0, 0) for t, s in zip(("stand", "walk", "run"), (60, 90, 30))]
     rows += [row("K 8, H 15", t, 0, m, 3) for t, m in zip(("stand", "walk", "run"), (9, 0, -3))]
     rows += [row("K 8, H 5", "stand", 0, 1, 1)]
+    rows[3]["episode_sd"] = 12.25
     lines = probe.table(rows).splitlines()
-    assert lines[2] == "| a | K 1 | 60.0 | 90.0 | 30.0 | 60.0 | 0.50 / 0.50 / 0.50 |"
-    assert lines[3] == "| a | K 8, H 15 | +9.0 +- 3.0 | +0.0 +- 3.0 | -3.0 +- 3.0 | **+2.0 +- 1.7** | 0.50 / 0.50 / 0.50 |"
-    assert lines[4] == "| a | K 8, H 5 | - | - | - | incomplete | - |"
+    assert lines[2] == "| a | K 1 | 60.0 | 90.0 | 30.0 | 60.0 | 0.50 / 0.50 / 0.50 | - / - / - |"
+    assert lines[3] == "| a | K 8, H 15 | +9.0 +- 3.0 | +0.0 +- 3.0 | -3.0 +- 3.0 | **+2.0 +- 1.7** | 0.50 / 0.50 / 0.50 | 12.2 / - / - |"
+    assert lines[4] == "| a | K 8, H 5 | - | - | - | incomplete | - | - |"
 
 
 def test_acting_value_zero_shot_table_averages_settings_cross_settings_and_tasks():
