@@ -7,13 +7,14 @@ and scored with Eq. 4's own objective: sum_k gamma^(k-1) r^goal(s_k, g) + gamma^
 the run's critic. The real body takes the best candidate's first action (model-predictive control with a learned
 value, as TD-MPC, Hansen et al. 2022; here the candidates are the clone's, so the choice stays within what the data
 shows). K = 1 is the benchmark's own acting, action for action. With --while-down the choice is made only while the
-body is down (posture below probes/getting_up.py's UP, read as probes/standing_subgoal.py reads it) and the actor's
-mean is taken once up: getting up is where a benchmark episode's luck lies, and d reads a pose, not a speed. Every
-variant on the benchmark's own start states and goals; each task's score minus plain acting is paired episode by
-episode. With --giil-zs the same variants act in the tables' GIIL-ZS cells instead (every setting x task, each demo's
-zero-shot goal on runner.imitate's evaluation seeds; plain acting there reproduces the committed GIIL-ZS rows).
+body is down (posture below probes/getting_up.py's UP, read as probes/standing_subgoal.py reads it; --while-lying:
+below its LYING, on the ground) and the actor's mean is taken otherwise: getting up is where a benchmark episode's
+luck lies, and d reads a pose, not a speed. Every variant on the benchmark's own start states and goals; each task's
+score minus plain acting is paired episode by episode. With --giil-zs the same variants act in the tables' GIIL-ZS
+cells instead (every setting x task, each demo's zero-shot goal on runner.imitate's evaluation seeds; plain acting
+there reproduces the committed GIIL-ZS rows).
 
-    python probes/acting_value.py agents/walker --while-down [--candidates 8] [--horizon 5 15] [--eval-seed 40000] [--out rows.jsonl]  # ~5 min
+    python probes/acting_value.py agents/walker --while-down|--while-lying [--candidates 8] [--horizon 5 15] [--eval-seed 40000] [--out rows.jsonl]  # ~5 min
     python probes/acting_value.py agents/walker --while-down --giil-zs [--settings SE-SV] [--out rows.jsonl]  # ~40 min
     python probes/acting_value.py --table docs/results/acting_value.jsonl   # or the --giil-zs rows
 """
@@ -33,7 +34,7 @@ import envs  # noqa: E402
 import evaluate  # noqa: E402
 import rundir  # noqa: E402
 import runner  # noqa: E402
-from probes.getting_up import LAST, UP  # noqa: E402
+from probes.getting_up import LAST, LYING, UP  # noqa: E402
 from probes.goal_variance import split  # noqa: E402
 from probes.standing_subgoal import torso_posture  # noqa: E402
 
@@ -43,10 +44,10 @@ class Chooser:
     on_state(state) keeps the filtered state s_t that act(feat, goal) then plans from (evaluate.run_episodes calls them
     in that order)."""
 
-    def __init__(self, models, candidates, horizon, gamma, read_posture=None, while_down=False):
+    def __init__(self, models, candidates, horizon, gamma, read_posture=None, below=None):
         self.wm, self.actor, self.dist_net, self.critic = (models[k] for k in ("world_model", "actor", "dist_net", "critic"))
         self.K, self.H, self.gamma, self.state = candidates, horizon, gamma, None
-        self.read_posture, self.while_down = read_posture, while_down  # read_posture() -> (N,); while_down: choose only below UP
+        self.read_posture, self.below = read_posture, below  # read_posture() -> (N,); below: choose only at a posture below it (None: always)
         self.posture = []  # (steps, N): the posture each action was chosen at, where read_posture is given
 
     def on_state(self, state):
@@ -75,7 +76,7 @@ class Chooser:
         u = mean[:, None] + std[:, None] * torch.randn(N, self.K, A)  # drawn for every episode: the same draws whoever chooses
         u[:, 0] = mean  # candidate 0: the action plain acting takes
         first = torch.tanh(u)
-        choose = torch.as_tensor(self.posture[-1] < UP) if self.while_down else torch.ones(N, dtype=torch.bool)
+        choose = torch.as_tensor(self.posture[-1] < self.below) if self.below else torch.ones(N, dtype=torch.bool)
         if choose.any():  # only the episodes that choose imagine their candidates
             state = {k: v[choose].repeat_interleave(self.K, 0) for k, v in self.state.items() if k in self.wm.state_keys}
             scores = self.scores(state, goal[choose].repeat_interleave(self.K, 0), first[choose].flatten(0, 1))
@@ -83,13 +84,13 @@ class Chooser:
         return first[:, 0]
 
 
-def act_through(models, cfgs, task, goals, seed, steps, K, H, while_down):
+def act_through(models, cfgs, task, goals, seed, steps, K, H, below):
     """One episode of `steps` per goal of `task` from env seeds seed, seed + 1, ..., acting through a Chooser -> scores
     (N,), up at the end (N,) (getting_up.py's rule)."""
     body = cfgs["train"].env
     env_list = [envs.make_env(body, task) for _ in range(len(goals))]
     read = lambda: np.array([torso_posture(body, env) for env in env_list])
-    chooser = Chooser(models, K, H, cfgs["ac"].gamma, read, while_down)
+    chooser = Chooser(models, K, H, cfgs["ac"].gamma, read, below)
     returns, _ = evaluate.run_episodes(env_list, {**models, "actor": chooser}, goals, steps, cfgs["wm"].obs, seed,
                                        on_state=chooser.on_state)
     for env in env_list:
@@ -97,14 +98,14 @@ def act_through(models, cfgs, task, goals, seed, steps, K, H, while_down):
     return np.array([evaluate.episode_score(task, r, steps) for r in returns]), np.stack(chooser.posture)[-LAST:].mean(0) >= UP
 
 
-def episodes(models, cfgs, task, K, H, while_down, seed):
+def episodes(models, cfgs, task, K, H, below, seed):
     """The benchmark's episodes of `task` -> scores (E,), up at the end (E,)."""
     tc = cfgs["train"]
     goals = evaluate.demo_goals(models, tc.env, task, tc.data, tc.eval_episodes)
-    return act_through(models, cfgs, task, goals, seed, tc.eval_steps, K, H, while_down)
+    return act_through(models, cfgs, task, goals, seed, tc.eval_steps, K, H, below)
 
 
-def zero_shot_cell(models, cfgs, task, where, K, H, while_down, seed):
+def zero_shot_cell(models, cfgs, task, where, K, H, below, seed):
     """The tables' GIIL-ZS cell `where` of `task` as runner.imitate evaluates it: g = q(s | p_T) of each demo k,
     ImitateConfig's eval_episodes each from env seeds seed + 100 k + e (runner.EVAL_SEED: the tables' own) -> scores, up
     at the end (demos x episodes,). With K = 1 and the tables' seed they are the committed GIIL-ZS rows' episode_scores."""
@@ -112,7 +113,7 @@ def zero_shot_cell(models, cfgs, task, where, K, H, while_down, seed):
     demos = collect.load_folder(checkpoint.demo_folder(cfgs, demo, view), ("p",))
     ic = configs.ImitateConfig()
     out = [act_through(models, cfgs, task, models["goal_vae"].goal(torch.as_tensor(d["p"][-1]))[None].expand(ic.eval_episodes, -1),
-                       seed + 100 * k, ic.eval_steps, K, H, while_down) for k, d in enumerate(demos)]
+                       seed + 100 * k, ic.eval_steps, K, H, below) for k, d in enumerate(demos)]
     return np.concatenate([o[0] for o in out]), np.concatenate([o[1] for o in out])
 
 
@@ -167,7 +168,10 @@ def main():
     parser.add_argument("--table", nargs="+", help="print the table of these rows and stop")
     parser.add_argument("--candidates", type=int, default=8, help="K: first actions scored per real step")
     parser.add_argument("--horizon", type=int, nargs="+", default=[15], help="H: imagined steps per candidate (15: Eq. 4's horizon, chosen over 5)")
-    parser.add_argument("--while-down", action="store_true", help="choose only while the body is down (module docstring)")
+    when = parser.add_mutually_exclusive_group()
+    when.add_argument("--while-down", dest="below", action="store_const", const=UP, help="choose only while the body is down (module docstring)")
+    when.add_argument("--while-lying", dest="below", action="store_const", const=LYING, help="choose only while it lies on the ground "
+                      "(posture below getting_up.py's LYING): rising and a low gait keep the actor's mean")
     parser.add_argument("--eval-seed", type=int, help="the episodes' first env seed (default: the run's benchmark's, 30000; "
                         "40000: fresh start poses, to confirm a choice made on the benchmark's)")
     parser.add_argument("--giil-zs", action="store_true", help="the tables' GIIL-ZS cells instead of the benchmark (zero_shot_cell)")
@@ -187,7 +191,7 @@ def main():
     rundir.fast_matmul()  # as train.py's benchmark computes, so that plain acting is the run's own, episode for episode
     cfgs, models, ckpt = checkpoint.load_run(args.run)
     seed = cfgs["train"].eval_seed if args.eval_seed is None else args.eval_seed
-    down = ", while down" if args.while_down else ""
+    down = {None: "", UP: ", while down", LYING: ", while lying"}[args.below]
     fresh = "" if args.eval_seed is None else f", seed {seed}"
     variants = [(f"K 1{fresh}", 1, 1)] + [(f"K {args.candidates}, H {h}{down}{fresh}", args.candidates, h) for h in args.horizon]
     if args.giil_zs:
@@ -200,9 +204,9 @@ def main():
         for task, where in cells:
             with torch.no_grad():
                 if where:
-                    scores, up_end = zero_shot_cell(models, cfgs, task, where, K, H, args.while_down, seed)
+                    scores, up_end = zero_shot_cell(models, cfgs, task, where, K, H, args.below, seed)
                 else:
-                    scores, up_end = episodes(models, cfgs, task, K, H, args.while_down, seed)
+                    scores, up_end = episodes(models, cfgs, task, K, H, args.below, seed)
             plain.setdefault((task, where), scores)
             minus = scores - plain[task, where]
             per_goal = (configs.ImitateConfig() if where else cfgs["train"]).eval_episodes  # episodes of a goal lie side by side

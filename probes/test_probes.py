@@ -380,7 +380,7 @@ def test_acting_value_is_plain_acting_at_one_candidate_and_picks_the_best_imagin
         keep = {k: states[-1][k] for k in models["world_model"].state_keys}
         assert (chooser.scores(keep, goals, taken) >= chooser.scores(keep, goals, mean) - 1e-5).all()
         assert not torch.allclose(taken, mean)
-        chooser.read_posture, chooser.while_down = lambda: np.array([0.9, 0.1, 0.9]), True  # up in episodes 0, 2: the mean there
+        chooser.read_posture, chooser.below = lambda: np.array([0.9, 0.1, 0.9]), 0.8  # up in episodes 0, 2: the mean there
         taken = chooser.act(feat, goals)
         assert torch.equal(taken[[0, 2]], mean[[0, 2]])
 
