@@ -7,14 +7,13 @@ and scored with Eq. 4's own objective: sum_k gamma^(k-1) r^goal(s_k, g) + gamma^
 the run's critic. The real body takes the best candidate's first action (model-predictive control with a learned
 value, as TD-MPC, Hansen et al. 2022; here the candidates are the clone's, so the choice stays within what the data
 shows). K = 1 is the benchmark's own acting, action for action. With --while-down the choice is made only while the
-body is down (posture below probes/getting_up.py's UP, read as probes/standing_subgoal.py reads it; --while-lying:
-below its LYING, on the ground) and the actor's mean is taken otherwise: getting up is where a benchmark episode's
-luck lies, and d reads a pose, not a speed. Every variant on the benchmark's own start states and goals; each task's
-score minus plain acting is paired episode by episode. With --giil-zs the same variants act in the tables' GIIL-ZS
-cells instead (every setting x task, each demo's zero-shot goal on runner.imitate's evaluation seeds; plain acting
-there reproduces the committed GIIL-ZS rows).
+body is down (posture below probes/getting_up.py's UP, read as probes/standing_subgoal.py reads it) and the actor's
+mean is taken once up: getting up is where a benchmark episode's luck lies, and d reads a pose, not a speed. Every
+variant on the benchmark's own start states and goals; each task's score minus plain acting is paired episode by
+episode. With --giil-zs the same variants act in the tables' GIIL-ZS cells instead (every setting x task, each demo's
+zero-shot goal on runner.imitate's evaluation seeds; plain acting there reproduces the committed GIIL-ZS rows).
 
-    python probes/acting_value.py agents/walker --while-down|--while-lying [--candidates 8] [--horizon 5 15] [--eval-seed 40000] [--out rows.jsonl]  # ~5 min
+    python probes/acting_value.py agents/walker --while-down [--candidates 8] [--horizon 5 15] [--eval-seed 40000] [--out rows.jsonl]  # ~5 min
     python probes/acting_value.py agents/walker --while-down --giil-zs [--settings SE-SV] [--out rows.jsonl]  # ~40 min
     python probes/acting_value.py --table docs/results/acting_value.jsonl   # or the --giil-zs rows
 """
@@ -34,7 +33,7 @@ import envs  # noqa: E402
 import evaluate  # noqa: E402
 import rundir  # noqa: E402
 import runner  # noqa: E402
-from probes.getting_up import LAST, LYING, UP  # noqa: E402
+from probes.getting_up import LAST, UP  # noqa: E402
 from probes.goal_variance import split  # noqa: E402
 from probes.standing_subgoal import torso_posture  # noqa: E402
 
@@ -168,10 +167,7 @@ def main():
     parser.add_argument("--table", nargs="+", help="print the table of these rows and stop")
     parser.add_argument("--candidates", type=int, default=8, help="K: first actions scored per real step")
     parser.add_argument("--horizon", type=int, nargs="+", default=[15], help="H: imagined steps per candidate (15: Eq. 4's horizon, chosen over 5)")
-    when = parser.add_mutually_exclusive_group()
-    when.add_argument("--while-down", dest="below", action="store_const", const=UP, help="choose only while the body is down (module docstring)")
-    when.add_argument("--while-lying", dest="below", action="store_const", const=LYING, help="choose only while it lies on the ground "
-                      "(posture below getting_up.py's LYING): rising and a low gait keep the actor's mean")
+    parser.add_argument("--while-down", dest="below", action="store_const", const=UP, help="choose only while the body is down (module docstring)")
     parser.add_argument("--eval-seed", type=int, help="the episodes' first env seed (default: the run's benchmark's, 30000; "
                         "40000: fresh start poses, to confirm a choice made on the benchmark's)")
     parser.add_argument("--giil-zs", action="store_true", help="the tables' GIIL-ZS cells instead of the benchmark (zero_shot_cell)")
@@ -191,7 +187,7 @@ def main():
     rundir.fast_matmul()  # as train.py's benchmark computes, so that plain acting is the run's own, episode for episode
     cfgs, models, ckpt = checkpoint.load_run(args.run)
     seed = cfgs["train"].eval_seed if args.eval_seed is None else args.eval_seed
-    down = {None: "", UP: ", while down", LYING: ", while lying"}[args.below]
+    down = ", while down" if args.below else ""
     fresh = "" if args.eval_seed is None else f", seed {seed}"
     variants = [(f"K 1{fresh}", 1, 1)] + [(f"K {args.candidates}, H {h}{down}{fresh}", args.candidates, h) for h in args.horizon]
     if args.giil_zs:
