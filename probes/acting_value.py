@@ -35,7 +35,7 @@ import rundir  # noqa: E402
 import runner  # noqa: E402
 from probes.getting_up import LAST, UP  # noqa: E402
 from probes.goal_variance import split  # noqa: E402
-from probes.standing_subgoal import data_up_goals, torso_posture  # noqa: E402
+from probes.standing_subgoal import torso_posture  # noqa: E402
 
 
 class Chooser:
@@ -43,12 +43,11 @@ class Chooser:
     on_state(state) keeps the filtered state s_t that act(feat, goal) then plans from (evaluate.run_episodes calls them
     in that order)."""
 
-    def __init__(self, models, candidates, horizon, gamma, read_posture=None, below=None, up_goal=None):
+    def __init__(self, models, candidates, horizon, gamma, read_posture=None, below=None):
         self.wm, self.actor, self.dist_net, self.critic = (models[k] for k in ("world_model", "actor", "dist_net", "critic"))
         self.K, self.H, self.gamma, self.state = candidates, horizon, gamma, None
         self.read_posture, self.below = read_posture, below  # read_posture() -> (N,); below: choose only at a posture below it (None: always)
         self.posture = []  # (steps, N): the posture each action was chosen at, where read_posture is given
-        self.up_goal = up_goal  # (1, G): the goal the candidates are scored by instead of the task's (--to-up)
 
     def on_state(self, state):
         self.state = state
@@ -79,19 +78,18 @@ class Chooser:
         choose = torch.as_tensor(self.posture[-1] < self.below) if self.below else torch.ones(N, dtype=torch.bool)
         if choose.any():  # only the episodes that choose imagine their candidates
             state = {k: v[choose].repeat_interleave(self.K, 0) for k, v in self.state.items() if k in self.wm.state_keys}
-            target = goal[choose] if self.up_goal is None else self.up_goal.expand(int(choose.sum()), -1)
-            scores = self.scores(state, target.repeat_interleave(self.K, 0), first[choose].flatten(0, 1))
+            scores = self.scores(state, goal[choose].repeat_interleave(self.K, 0), first[choose].flatten(0, 1))
             first[choose, 0] = first[choose, scores.reshape(-1, self.K).argmax(1)]
         return first[:, 0]
 
 
-def act_through(models, cfgs, task, goals, seed, steps, K, H, below, up_goal=None):
+def act_through(models, cfgs, task, goals, seed, steps, K, H, below):
     """One episode of `steps` per goal of `task` from env seeds seed, seed + 1, ..., acting through a Chooser -> scores
     (N,), up at the end (N,) (getting_up.py's rule)."""
     body = cfgs["train"].env
     env_list = [envs.make_env(body, task) for _ in range(len(goals))]
     read = lambda: np.array([torso_posture(body, env) for env in env_list])
-    chooser = Chooser(models, K, H, cfgs["ac"].gamma, read, below, up_goal)
+    chooser = Chooser(models, K, H, cfgs["ac"].gamma, read, below)
     returns, _ = evaluate.run_episodes(env_list, {**models, "actor": chooser}, goals, steps, cfgs["wm"].obs, seed,
                                        on_state=chooser.on_state)
     for env in env_list:
@@ -99,14 +97,14 @@ def act_through(models, cfgs, task, goals, seed, steps, K, H, below, up_goal=Non
     return np.array([evaluate.episode_score(task, r, steps) for r in returns]), np.stack(chooser.posture)[-LAST:].mean(0) >= UP
 
 
-def episodes(models, cfgs, task, K, H, below, seed, up_goal=None):
+def episodes(models, cfgs, task, K, H, below, seed):
     """The benchmark's episodes of `task` -> scores (E,), up at the end (E,)."""
     tc = cfgs["train"]
     goals = evaluate.demo_goals(models, tc.env, task, tc.data, tc.eval_episodes)
-    return act_through(models, cfgs, task, goals, seed, tc.eval_steps, K, H, below, up_goal)
+    return act_through(models, cfgs, task, goals, seed, tc.eval_steps, K, H, below)
 
 
-def zero_shot_cell(models, cfgs, task, where, K, H, below, seed, up_goal=None):
+def zero_shot_cell(models, cfgs, task, where, K, H, below, seed):
     """The tables' GIIL-ZS cell `where` of `task` as runner.imitate evaluates it: g = q(s | p_T) of each demo k,
     ImitateConfig's eval_episodes each from env seeds seed + 100 k + e (runner.EVAL_SEED: the tables' own) -> scores, up
     at the end (demos x episodes,). With K = 1 and the tables' seed they are the committed GIIL-ZS rows' episode_scores."""
@@ -114,7 +112,7 @@ def zero_shot_cell(models, cfgs, task, where, K, H, below, seed, up_goal=None):
     demos = collect.load_folder(checkpoint.demo_folder(cfgs, demo, view), ("p",))
     ic = configs.ImitateConfig()
     out = [act_through(models, cfgs, task, models["goal_vae"].goal(torch.as_tensor(d["p"][-1]))[None].expand(ic.eval_episodes, -1),
-                       seed + 100 * k, ic.eval_steps, K, H, below, up_goal) for k, d in enumerate(demos)]
+                       seed + 100 * k, ic.eval_steps, K, H, below) for k, d in enumerate(demos)]
     return np.concatenate([o[0] for o in out]), np.concatenate([o[1] for o in out])
 
 
@@ -170,8 +168,6 @@ def main():
     parser.add_argument("--candidates", type=int, default=8, help="K: first actions scored per real step")
     parser.add_argument("--horizon", type=int, nargs="+", default=[15], help="H: imagined steps per candidate (15: Eq. 4's horizon, chosen over 5)")
     parser.add_argument("--while-down", dest="below", action="store_const", const=UP, help="choose only while the body is down (module docstring)")
-    parser.add_argument("--to-up", action="store_true", help="score the candidates by their imagined return to the label-free upright goal "
-                        "(the D_body episode up the longest, standing_subgoal.data_up_goals) instead of the task's goal")
     parser.add_argument("--eval-seed", type=int, help="the episodes' first env seed (default: the run's benchmark's, 30000; "
                         "40000: fresh start poses, to confirm a choice made on the benchmark's)")
     parser.add_argument("--giil-zs", action="store_true", help="the tables' GIIL-ZS cells instead of the benchmark (zero_shot_cell)")
@@ -191,9 +187,7 @@ def main():
     rundir.fast_matmul()  # as train.py's benchmark computes, so that plain acting is the run's own, episode for episode
     cfgs, models, ckpt = checkpoint.load_run(args.run)
     seed = cfgs["train"].eval_seed if args.eval_seed is None else args.eval_seed
-    down = (", while down" if args.below else "") + (", to g_up" if args.to_up else "")
-    with torch.no_grad():
-        up_goal = data_up_goals(models, cfgs, 1) if args.to_up else None
+    down = ", while down" if args.below else ""
     fresh = "" if args.eval_seed is None else f", seed {seed}"
     variants = [(f"K 1{fresh}", 1, 1)] + [(f"K {args.candidates}, H {h}{down}{fresh}", args.candidates, h) for h in args.horizon]
     if args.giil_zs:
@@ -206,9 +200,9 @@ def main():
         for task, where in cells:
             with torch.no_grad():
                 if where:
-                    scores, up_end = zero_shot_cell(models, cfgs, task, where, K, H, args.below, seed, up_goal)
+                    scores, up_end = zero_shot_cell(models, cfgs, task, where, K, H, args.below, seed)
                 else:
-                    scores, up_end = episodes(models, cfgs, task, K, H, args.below, seed, up_goal)
+                    scores, up_end = episodes(models, cfgs, task, K, H, args.below, seed)
             plain.setdefault((task, where), scores)
             minus = scores - plain[task, where]
             per_goal = (configs.ImitateConfig() if where else cfgs["train"]).eval_episodes  # episodes of a goal lie side by side
