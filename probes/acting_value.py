@@ -104,13 +104,19 @@ def episodes(models, cfgs, task, K, H, below, seed):
     return act_through(models, cfgs, task, goals, seed, tc.eval_steps, K, H, below)
 
 
+def imitate_config(cfgs):
+    """The ImitateConfig of the run's preset, as `python imitate.py` or `tables.py` evaluates it without flags."""
+    return configs.ImitateConfig(**configs.PRESETS["imitate"][cfgs["train"].preset])
+
+
 def zero_shot_cell(models, cfgs, task, where, K, H, below, seed):
     """The tables' GIIL-ZS cell `where` of `task` as runner.imitate evaluates it: g = q(s | p_T) of each demo k,
-    ImitateConfig's eval_episodes each from env seeds seed + 100 k + e (runner.EVAL_SEED: the tables' own) -> scores, up
-    at the end (demos x episodes,). With K = 1 and the tables' seed they are the committed GIIL-ZS rows' episode_scores."""
+    eval_episodes each from env seeds seed + 100 k + e (runner.EVAL_SEED: the tables' own), the ImitateConfig of the run's
+    preset -> scores, up at the end (demos x episodes,). With K = 1 and the tables' seed they are the GIIL-ZS rows'
+    episode_scores."""
     demo, view = envs.demo_of(cfgs["train"].env, task, where)
     demos = collect.load_folder(checkpoint.demo_folder(cfgs, demo, view), ("p",))
-    ic = configs.ImitateConfig()
+    ic = imitate_config(cfgs)
     out = [act_through(models, cfgs, task, models["goal_vae"].goal(torch.as_tensor(d["p"][-1]))[None].expand(ic.eval_episodes, -1),
                        seed + 100 * k, ic.eval_steps, K, H, below) for k, d in enumerate(demos)]
     return np.concatenate([o[0] for o in out]), np.concatenate([o[1] for o in out])
@@ -205,7 +211,7 @@ def main():
                     scores, up_end = episodes(models, cfgs, task, K, H, args.below, seed)
             plain.setdefault((task, where), scores)
             minus = scores - plain[task, where]
-            per_goal = (configs.ImitateConfig() if where else cfgs["train"]).eval_episodes  # episodes of a goal lie side by side
+            per_goal = (imitate_config(cfgs) if where else cfgs["train"]).eval_episodes  # episodes of a goal lie side by side
             row = {"run": args.run, "weights": rundir.weights_id(ckpt), "variant": name, **({"setting": where} if where else {}),
                    "task": task, "episodes": len(scores), "eval_seed": seed, "score": round(float(scores.mean()), 2),
                    "se": round(float(evaluate.stderr(scores)), 2), "minus_plain": round(float(minus.mean()), 2),

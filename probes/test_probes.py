@@ -385,6 +385,21 @@ def test_acting_value_is_plain_acting_at_one_candidate_and_picks_the_best_imagin
         assert torch.equal(taken[[0, 2]], mean[[0, 2]])
 
 
+def test_acting_value_giil_zs_cell_at_one_candidate_is_the_runners_giil_zs(smoke_run, tmp_path):
+    """probes/acting_value.py --giil-zs: K = 1 in a cell scores each demo's goal episode for episode as runner.imitate's
+    GIIL-ZS rows do (the tables' column), on the preset's evaluation settings and seeds."""
+    import runner
+
+    probe = probe_script("acting_value")
+    run = shutil.copytree(smoke_run, tmp_path / "run")  # runner appends to its results.jsonl
+    rows = runner.imitate(str(run), "walker_walk", "side", configs.ImitateConfig(**configs.PRESETS["imitate"]["smoke"]))
+    cfgs, models, _ = checkpoint.load_run(str(run))
+    with torch.no_grad():
+        scores, _ = probe.zero_shot_cell(models, cfgs, "walk", "SE-SV", 1, 1, None, runner.EVAL_SEED)
+    expected = [s for r in sorted(rows, key=lambda r: r["seed"]) for s in r["episode_scores"]]
+    assert len(expected) == len(rows) > 1 and np.array_equal(scores, expected)
+
+
 def test_acting_value_table_averages_the_tasks_and_marks_an_unfinished_variant():
     """probes/acting_value.py --table: plain acting's scores, a variant's paired differences and their average with
     the s.e. of independent tasks, the share up at the end and the episode s.d. where a row has them; a variant
