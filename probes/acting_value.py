@@ -174,7 +174,7 @@ def main():
     parser.add_argument("--candidates", type=int, default=8, help="K: first actions scored per real step")
     parser.add_argument("--horizon", type=int, nargs="+", default=[15], help="H: imagined steps per candidate (15: Eq. 4's horizon, chosen over 5)")
     parser.add_argument("--while-down", dest="below", action="store_const", const=UP, help="choose only while the body is down (module docstring)")
-    parser.add_argument("--eval-seed", type=int, help="the episodes' first env seed (default: the run's benchmark's, 30000; "
+    parser.add_argument("--eval-seed", type=int, help="the episodes' first env seed (default: the run's benchmark's, 30000, or with --giil-zs the tables' 20000; "
                         "40000: fresh start poses, to confirm a choice made on the benchmark's)")
     parser.add_argument("--giil-zs", action="store_true", help="the tables' GIIL-ZS cells instead of the benchmark (zero_shot_cell)")
     parser.add_argument("--settings", nargs="+", default=list(envs.SETTINGS), choices=envs.SETTINGS, help="with --giil-zs")
@@ -192,12 +192,12 @@ def main():
     torch.set_num_threads(1)
     rundir.fast_matmul()  # as train.py's benchmark computes, so that plain acting is the run's own, episode for episode
     cfgs, models, ckpt = checkpoint.load_run(args.run)
-    seed = cfgs["train"].eval_seed if args.eval_seed is None else args.eval_seed
+    default_seed = runner.EVAL_SEED if args.giil_zs else cfgs["train"].eval_seed  # the tables' or the benchmark's
+    seed = default_seed if args.eval_seed is None else args.eval_seed
     down = ", while down" if args.below else ""
     fresh = "" if args.eval_seed is None else f", seed {seed}"
     variants = [(f"K 1{fresh}", 1, 1)] + [(f"K {args.candidates}, H {h}{down}{fresh}", args.candidates, h) for h in args.horizon]
     if args.giil_zs:
-        seed = runner.EVAL_SEED if args.eval_seed is None else args.eval_seed
         cells = [c for c in envs.cells(cfgs["train"].env) if c[0] in (args.tasks or envs.TASKS) and c[1] in args.settings]
     else:
         cells = [(task, None) for task in args.tasks or envs.BODY_TASKS]
