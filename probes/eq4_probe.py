@@ -26,6 +26,9 @@ and appends one row to --out. Run from the repository root:
     python probes/eq4_probe.py agents/walker [--updates 3000] [--horizon 5 --starts 1024] [--critic-real] [--seed 0]
     python probes/eq4_probe.py agents/walker --from-clone --bc-anneal 1.0 0.1 --updates 2000 --horizon 5 --starts 1024 --distance td [--no-eq4]
     python probes/eq4_probe.py --summary docs/results/eq4_probe_walker.jsonl
+
+With `--save-agent DIR` the actor after the stage is kept as an agent (save_agent), for the probes and commands that read
+one (e.g. `python probes/acting_value.py DIR --giil-zs`: the tables' GIIL-ZS cells).
 """
 import argparse
 import dataclasses
@@ -107,6 +110,20 @@ def train_eq4(models, cfgs, data, updates, critic_real, log_every, seed, from_cl
     return log
 
 
+def save_agent(ckpt, models, out_dir):
+    """DIR/checkpoint.pt: the run's checkpoint (its config and frozen models) with the actor, critic and return scale the
+    stage trained, no optimisers or RNGs, as checkpoint.export_agent writes an agent; the distance network stays the
+    run's own (a td reading fit here is the probe's). An existing checkpoint there is never replaced."""
+    path = os.path.join(out_dir, "checkpoint.pt")
+    if os.path.exists(path):
+        raise ValueError(f"--save-agent {out_dir}: {path} exists already; name another folder")
+    trained = {k: models[k].state_dict() for k in ("actor", "critic", "slow_critic", "return_norm")}
+    agent = {k: ckpt[k] for k in ("config", "step", "encoder", "obs_shape", "action_dim", "p_dim")} | {"models": ckpt["models"] | trained}
+    os.makedirs(out_dir, exist_ok=True)
+    rundir.atomic_write(path, lambda f: torch.save(agent, f))
+    return path
+
+
 def summary(rows):
     """One line per (run, guard): the benchmark average over seeds, mean +- s.e., the gap and the reachable rewards; from
     the clone, also the average minus the run's own benchmark, paired by run. Runs that differ only in their training
@@ -153,6 +170,7 @@ def main():
     parser.add_argument("--data", help="D_body's folder for the starts, batches and fits (default the run's; an exported agent "
                         "stores data/, e.g. agents/stickman was trained on data/late)")
     parser.add_argument("--out", help="append the row here (default docs/results/eq4_probe_<body>.jsonl)")
+    parser.add_argument("--save-agent", metavar="DIR", help="keep the actor after the stage as an agent in DIR (save_agent)")
     args = parser.parse_args()
     if args.summary:
         print("\n".join(summary([json.loads(line) for line in open(args.summary)])))
@@ -161,6 +179,8 @@ def main():
         parser.error("name a trained run, or --summary JSONL")
     if args.no_eq4 and not (args.from_clone and args.bc_anneal):
         parser.error("--no-eq4 leaves the cloning alone: it goes with --from-clone and --bc-anneal")
+    if args.save_agent and os.path.exists(os.path.join(args.save_agent, "checkpoint.pt")):
+        parser.error(f"--save-agent {args.save_agent}: it holds a checkpoint already; name another folder")
     if args.bc_anneal and min(args.bc_anneal) < 0:
         parser.error(f"--bc-anneal {args.bc_anneal[0]:g} {args.bc_anneal[1]:g}: cloning weights are >= 0 (ROT's: 1.0 0.1)")
     torch.set_num_threads(1)
@@ -179,6 +199,8 @@ def main():
         reading = distance_probe.fit(x, g, updates=updates, seed=args.seed, **distance_probe.READINGS[args.distance]).requires_grad_(False)
         models["dist_net"] = distance_probe.DecodedDistance(reading, wm.decoder)
     log = train_eq4(models, cfgs, data, args.updates, args.critic_real, args.log_every, args.seed, args.from_clone, args.bc_anneal, not args.no_eq4)
+    if args.save_agent:
+        print("the agent after the stage:", save_agent(ckpt, models, args.save_agent))
     scores = evaluate.goal_reaching(models, cfgs, args.episodes, args.eval_steps, envs.BODY_TASKS)
     print("\n".join(evaluate.summary(scores)))
     gaps = [np.subtract(*imagination_gap.task_gap(models, cfgs, task)) for task in envs.BODY_TASKS]
@@ -195,6 +217,7 @@ def main():
     out = args.out or os.path.join("docs", "results", f"eq4_probe_{cfgs['train'].env}.jsonl")
     rundir.append_jsonl(out, row)
     print("appended to", out)
+
 
 
 if __name__ == "__main__":

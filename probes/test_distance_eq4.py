@@ -93,6 +93,25 @@ def test_eq4_probe_from_the_clone_without_updates_scores_the_runs_own_benchmark(
     assert f"| {smoke_run} | clone, bc 1 -> 0.1 | run | " in summary.stdout and "| 0.0 |" in summary.stdout
 
 
+def test_eq4_probe_saves_the_stage_actor_as_an_agent_and_never_replaces_one(smoke_run, tmp_path):
+    """--save-agent DIR: an agent checkpoint.load_run reads, the run's frozen models with the actor the stage moved; a
+    folder holding a checkpoint already is refused before anything runs."""
+    import checkpoint
+    agent, out = str(tmp_path / "agent"), str(tmp_path / "rows.jsonl")
+    command = [sys.executable, "probes/eq4_probe.py", smoke_run, "--from-clone", "--bc-anneal", "1", "0.1", "--updates", "1",
+               "--episodes", "1", "--eval-steps", "10", "--out", out, "--save-agent", agent]
+    result = subprocess.run(command, cwd=ROOT, capture_output=True, text=True, env={**os.environ, "MUJOCO_GL": "egl"})
+    assert result.returncode == 0, result.stderr[-2000:]
+    _, run, _ = checkpoint.load_run(smoke_run)
+    _, saved, _ = checkpoint.load_run(agent)
+    same = lambda a, b: all(torch.equal(x, y) for x, y in zip(a.state_dict().values(), b.state_dict().values()))  # noqa: E731
+    assert same(saved["world_model"], run["world_model"]) and same(saved["dist_net"], run["dist_net"])
+    assert not same(saved["actor"], run["actor"])
+    again = subprocess.run(command, cwd=ROOT, capture_output=True, text=True)
+    assert again.returncode == 2 and f"--save-agent {agent}: it holds a checkpoint already; name another folder" in again.stderr
+    assert len(open(out).readlines()) == 1
+
+
 def test_td_loss_bootstraps_inside_an_episode_and_targets_the_discounted_steps():
     """distance_probe.td_loss on segments that cross an episode start: every target reads a state of the same episode part
     1 to n steps later; and with d = 0 everywhere but the slow copy at d (1 - gamma) = 1, i.e. V' = -1 / (1 - gamma)
