@@ -171,7 +171,7 @@ def main():
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0], allow_abbrev=False)
     parser.add_argument("run", nargs="?", help="a trained run or shipped agent, e.g. agents/walker")
     parser.add_argument("--table", nargs="+", help="print the table of these rows and stop")
-    parser.add_argument("--candidates", type=int, default=8, help="K: first actions scored per real step")
+    parser.add_argument("--candidates", type=int, default=8, help="K: first actions scored per real step (1: plain acting only)")
     parser.add_argument("--horizon", type=int, nargs="+", default=[15], help="H: imagined steps per candidate (15: Eq. 4's horizon, chosen over 5)")
     parser.add_argument("--while-down", dest="below", action="store_const", const=UP, help="choose only while the body is down (module docstring)")
     parser.add_argument("--eval-seed", type=int, help="the episodes' first env seed (default: the run's benchmark's, 30000, or with --giil-zs the tables' 20000; "
@@ -187,8 +187,8 @@ def main():
         return
     if not args.run:
         parser.error("give a run, e.g. agents/walker, or --table rows.jsonl")
-    if args.candidates < 2 or min(args.horizon) < 1:
-        parser.error(f"--candidates {args.candidates} --horizon {args.horizon}: give K >= 2 and H >= 1 (K = 1 is plain acting, always run)")
+    if args.candidates < 1 or min(args.horizon) < 1:
+        parser.error(f"--candidates {args.candidates} --horizon {args.horizon}: give K >= 1 and H >= 1 (K = 1: plain acting only)")
     torch.set_num_threads(1)
     rundir.fast_matmul()  # as train.py's benchmark computes, so that plain acting is the run's own, episode for episode
     cfgs, models, ckpt = checkpoint.load_run(args.run)
@@ -196,7 +196,7 @@ def main():
     seed = default_seed if args.eval_seed is None else args.eval_seed
     down = ", while down" if args.below else ""
     fresh = "" if args.eval_seed is None else f", seed {seed}"
-    variants = [(f"K 1{fresh}", 1, 1)] + [(f"K {args.candidates}, H {h}{down}{fresh}", args.candidates, h) for h in args.horizon]
+    variants = [(f"K 1{fresh}", 1, 1)] + [(f"K {args.candidates}, H {h}{down}{fresh}", args.candidates, h) for h in args.horizon if args.candidates > 1]
     if args.giil_zs:
         cells = [c for c in envs.cells(cfgs["train"].env) if c[0] in (args.tasks or envs.TASKS) and c[1] in args.settings]
     else:

@@ -13,6 +13,7 @@ import torch
 import checkpoint
 import configs
 import evaluate
+import rundir
 import video_encoder
 from baselines import aime_nob, genrl
 from conftest import probe_script
@@ -398,6 +399,17 @@ def test_acting_value_giil_zs_cell_at_one_candidate_is_the_runners_giil_zs(smoke
         scores, _ = probe.zero_shot_cell(models, cfgs, "walk", "SE-SV", 1, 1, None, runner.EVAL_SEED)
     expected = [s for r in sorted(rows, key=lambda r: r["seed"]) for s in r["episode_scores"]]
     assert len(expected) == len(rows) > 1 and np.array_equal(scores, expected)
+
+
+def test_acting_value_at_one_candidate_acts_plainly_only_and_refuses_no_candidate(smoke_run, tmp_path):
+    """--candidates 1: one row per task, plain acting's (no choice variant); --candidates 0 is refused before anything runs."""
+    out = tmp_path / "rows.jsonl"
+    command = [sys.executable, "probes/acting_value.py", smoke_run, "--tasks", "stand", "--out", str(out)]
+    result = subprocess.run(command + ["--candidates", "1"], cwd=ROOT, capture_output=True, text=True, env={**os.environ, "MUJOCO_GL": "egl"})
+    assert result.returncode == 0, result.stderr[-2000:]
+    assert [(r["variant"], r["task"], r["minus_plain"]) for r in rundir.read_jsonl(str(out))] == [("K 1", "stand", 0.0)]
+    refused = subprocess.run(command + ["--candidates", "0"], cwd=ROOT, capture_output=True, text=True)
+    assert refused.returncode == 2 and "--candidates 0 --horizon [15]: give K >= 1 and H >= 1" in refused.stderr
 
 
 def test_acting_value_table_averages_the_tasks_and_marks_an_unfinished_variant():
