@@ -219,6 +219,5 @@ def main():
     print("appended to", out)
 
 
-
 if __name__ == "__main__":
     main()

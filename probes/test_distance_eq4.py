@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 import torch
 
+import checkpoint
 from conftest import probe_script
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
@@ -96,7 +97,6 @@ def test_eq4_probe_from_the_clone_without_updates_scores_the_runs_own_benchmark(
 def test_eq4_probe_saves_the_stage_actor_as_an_agent_and_never_replaces_one(smoke_run, tmp_path):
     """--save-agent DIR: an agent checkpoint.load_run reads, the run's frozen models with the actor the stage moved; a
     folder holding a checkpoint already is refused before anything runs."""
-    import checkpoint
     agent, out = str(tmp_path / "agent"), str(tmp_path / "rows.jsonl")
     command = [sys.executable, "probes/eq4_probe.py", smoke_run, "--from-clone", "--bc-anneal", "1", "0.1", "--updates", "1",
                "--episodes", "1", "--eval-steps", "10", "--out", out, "--save-agent", agent]
