@@ -113,10 +113,8 @@ def train_eq4(models, cfgs, data, updates, critic_real, log_every, seed, from_cl
 def save_agent(ckpt, models, out_dir):
     """DIR/checkpoint.pt: the run's checkpoint (its config and frozen models) with the actor, critic and return scale the
     stage trained, no optimisers or RNGs, as checkpoint.export_agent writes an agent; the distance network stays the
-    run's own (a td reading fit here is the probe's). An existing checkpoint there is never replaced."""
+    run's own (a td reading fit here is the probe's). main refuses a DIR that holds a checkpoint before the stage runs."""
     path = os.path.join(out_dir, "checkpoint.pt")
-    if os.path.exists(path):
-        raise ValueError(f"--save-agent {out_dir}: {path} exists already; name another folder")
     trained = {k: models[k].state_dict() for k in ("actor", "critic", "slow_critic", "return_norm")}
     agent = {k: ckpt[k] for k in ("config", "step", "encoder", "obs_shape", "action_dim", "p_dim")} | {"models": ckpt["models"] | trained}
     os.makedirs(out_dir, exist_ok=True)
